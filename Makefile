@@ -10,15 +10,16 @@ CXXFLAGS_FAST := -std=c++17 -O3 -march=native -fopenmp -DNDEBUG $(WARN) $(INCLUD
 CXXFLAGS_TEST := -std=c++17 -O2 -march=native -fopenmp -g $(WARN) $(INCLUDES)
 CXXFLAGS_SAN  := -std=c++17 -O1 -g -fopenmp -fsanitize=address,undefined -fno-omit-frame-pointer $(WARN) $(INCLUDES)
 
+BUILD        ?= build
 HEADERS      := $(wildcard madbp*.hpp) $(wildcard examples/*.hpp)
-TEST_SRCS    := $(wildcard tests/test_*.cpp)
-TEST_OBJS    := $(patsubst tests/%.cpp,build/tests/%.o,$(TEST_SRCS))
-SAN_OBJS     := $(patsubst tests/%.cpp,build/san/%.o,$(TEST_SRCS))
+TEST_SRCS    ?= $(wildcard tests/test_*.cpp)
+TEST_OBJS    := $(patsubst tests/%.cpp,$(BUILD)/tests/%.o,$(TEST_SRCS))
+SAN_OBJS     := $(patsubst tests/%.cpp,$(BUILD)/san/%.o,$(TEST_SRCS))
 EXAMPLE_SRCS := $(filter-out examples/madbp.cpp,$(wildcard examples/*.cpp))
-EXAMPLES     := $(patsubst examples/%.cpp,build/%,$(EXAMPLE_SRCS))
+EXAMPLES     := $(patsubst examples/%.cpp,$(BUILD)/%,$(EXAMPLE_SRCS))
 
 .PHONY: all deps test test-sanitize demo bench fuzz clean
-all: deps build/madbp $(EXAMPLES)
+all: deps $(BUILD)/madbp $(EXAMPLES)
 
 # Install Eigen and doctest through apt when their headers are missing.
 deps:
@@ -27,51 +28,51 @@ deps:
 	  $(SUDO) apt-get update -qq && $(SUDO) apt-get install -y -qq libeigen3-dev doctest-dev; \
 	fi
 
-build/madbp: examples/madbp.cpp $(HEADERS) | deps
+$(BUILD)/madbp: examples/madbp.cpp $(HEADERS) | deps
 	@mkdir -p build
 	$(CXX) $(CXXFLAGS_FAST) -o $@ $< 
 
-build/%: examples/%.cpp $(HEADERS) | deps
+$(BUILD)/%: examples/%.cpp $(HEADERS) | deps
 	@mkdir -p build
 	$(CXX) $(CXXFLAGS_FAST) -o $@ $<
 
-build/tests/%.o: tests/%.cpp $(HEADERS) | deps
-	@mkdir -p build/tests
+$(BUILD)/tests/%.o: tests/%.cpp $(HEADERS) | deps
+	@mkdir -p $(BUILD)/tests
 	$(CXX) $(CXXFLAGS_TEST) -c -o $@ $<
 
-build/run_tests: build/tests/main.o $(TEST_OBJS)
+$(BUILD)/run_tests: $(BUILD)/tests/main.o $(TEST_OBJS)
 	$(CXX) $(CXXFLAGS_TEST) -o $@ $^
 
-build/san/%.o: tests/%.cpp $(HEADERS) | deps
-	@mkdir -p build/san
+$(BUILD)/san/%.o: tests/%.cpp $(HEADERS) | deps
+	@mkdir -p $(BUILD)/san
 	$(CXX) $(CXXFLAGS_SAN) -c -o $@ $<
 
-build/run_tests_san: build/san/main.o $(SAN_OBJS)
+$(BUILD)/run_tests_san: $(BUILD)/san/main.o $(SAN_OBJS)
 	$(CXX) $(CXXFLAGS_SAN) -o $@ $^
 
 # Runs every test; the last line is "N passed, N failed" (doctest's test-case counts).
-test: deps build/run_tests
-	@set -o pipefail; build/run_tests $(TEST_ARGS) 2>&1 | tee build/test.log; status=$$?; \
-	 tests/summary.sh build/test.log; exit $$status
+test: deps $(BUILD)/run_tests
+	@set -o pipefail; $(BUILD)/run_tests $(TEST_ARGS) 2>&1 | tee $(BUILD)/test.log; status=$$?; \
+	 tests/summary.sh $(BUILD)/test.log; exit $$status
 
 # The same suite under AddressSanitizer + UndefinedBehaviorSanitizer (slow tests skipped).
-test-sanitize: deps build/run_tests_san
+test-sanitize: deps $(BUILD)/run_tests_san
 	@set -o pipefail; ASAN_OPTIONS=detect_leaks=1 UBSAN_OPTIONS=halt_on_error=1:print_stacktrace=1 \
-	 build/run_tests_san --test-case-exclude='*[slow]*' 2>&1 | tee build/test-san.log; status=$$?; \
-	 tests/summary.sh build/test-san.log; exit $$status
+	 $(BUILD)/run_tests_san --test-case-exclude='*[slow]*' 2>&1 | tee $(BUILD)/test-san.log; status=$$?; \
+	 tests/summary.sh $(BUILD)/test-san.log; exit $$status
 
 demo: all
-	build/madbp demo
+	$(BUILD)/madbp demo
 
 bench: all
-	build/madbp bench
+	$(BUILD)/madbp bench
 
 # libFuzzer target for the checkpoint reader; FUZZ_SECONDS=600 for the release check.
 FUZZ_SECONDS ?= 60
 fuzz: deps
-	@mkdir -p build/fuzz-corpus
-	clang++ -std=c++17 -O1 -g -fsanitize=fuzzer,address,undefined $(INCLUDES) -o build/fuzz_checkpoint tests/fuzz_checkpoint.cpp
-	build/fuzz_checkpoint -max_total_time=$(FUZZ_SECONDS) -max_len=4096 build/fuzz-corpus tests/fuzz-seeds
+	@mkdir -p $(BUILD)/fuzz-corpus
+	clang++ -std=c++17 -O1 -g -fsanitize=fuzzer,address,undefined $(INCLUDES) -o $(BUILD)/fuzz_checkpoint tests/fuzz_checkpoint.cpp
+	$(BUILD)/fuzz_checkpoint -max_total_time=$(FUZZ_SECONDS) -max_len=4096 $(BUILD)/fuzz-corpus tests/fuzz-seeds
 
 clean:
-	rm -rf build
+	rm -rf $(BUILD)
