@@ -116,6 +116,7 @@ inline void require_finite(double v, const std::string& field) {
 
 #include <algorithm>
 #include <array>
+#include <deque>
 #include <fstream>
 #include <functional>
 #include <limits>
@@ -750,6 +751,836 @@ inline World make_world(const Scene& scene, WorldConfig cfg = WorldConfig{}) {
     World world(scene.map, cfg);
     for (size_t i = 0; i < scene.starts.size(); ++i) world.add_agent(scene.starts[i], scene.goals[i]);
     return world;
+}
+
+
+// =============================================================================================
+// Section 7. Controllers: the common interface and the world's one-step model
+// =============================================================================================
+
+// Anything that drives a whole team: one action (force, components in [-1, 1]) per present
+// agent, in world.agents() order. Policies may keep state across the steps of one episode;
+// make a new one per episode.
+struct Policy {
+    virtual ~Policy() = default;
+    virtual std::vector<Vec2> act(const World& world) = 0;
+    // Mean wall time of one plan in milliseconds so far (0 for reactive controllers).
+    virtual double plan_ms() const { return 0; }
+};
+
+// The world's motion without contacts over one step with a constant force u, exactly:
+// p' = p + pv*v + pu*u, v' = vv*v + vu*u. With the defaults pv = 0.075, pu = 0.0075,
+// vv = 0.75, vu = 0.1 (two substeps of 0.05 s, drag 0.25 on the first).
+struct StepModel {
+    double pv, pu, vv, vu;
+    explicit StepModel(const WorldConfig& c) {
+        double h = c.dt / c.substeps, keep = 1 - c.drag;
+        vv = keep;
+        vu = c.dt / c.mass;
+        pv = c.dt * keep;
+        pu = h * h * c.substeps * (c.substeps + 1) / 2 / c.mass;
+    }
+    // Force that makes the velocity after one step `v_target` (deadbeat), before clamping.
+    Vec2 force_for_velocity(Vec2 v, Vec2 v_target) const { return (v_target - v * vv) / vu; }
+};
+
+// =============================================================================================
+// Section 8. CLF-QP (SPEC 3.1)
+// =============================================================================================
+
+// Per agent, e = p - g, V = sum_axes(e^2 + c_ev e v + c_vv v^2). With drag the velocity obeys
+// dv/dt = u - gamma v, gamma = -ln(1 - drag)/dt (2.877 1/s), so
+//   LfV = (2e + c_ev v).v - gamma (c_ev e + 2 c_vv v).v,   LgV = c_ev e + 2 c_vv v,
+// and the QP is: minimise |u|^2 + w s^2 s.t. |u_i| <= 1, LfV + LgV.u + eps V + s <= 0.
+// VMAS's HeuristicPolicy is c_ev = 0.5, c_vv = 1, eps = 0.2, w = 100, no drag term; it reaches
+// no goal within 100 steps (SPEC 3.1 "measured fact"). Our constants were tuned on the empty
+// and obstacle maps (README, "CLF-QP constants"). It ignores other agents and obstacles.
+struct ClfQpParams {
+    double c_ev = 1.0;           // weight of the e*v cross term in V, >= 0, 1/s
+    double c_vv = 0.2;           // weight of v^2 in V, > 0, s^2
+    double eps = 3.0;            // required decay rate of V, > 0, 1/s
+    double slack_weight = 100;   // w, cost of relaxing the CLF constraint, > 0
+    bool drag_in_lfv = true;     // account for drag in LfV
+};
+
+// Exact minimiser of f(u) = |u|^2 + w * max(0, a + b.u)^2 over the box |u_i| <= lim.
+// (The free slack s of the QP is optimal at s = min(0, -(a + b.u)), which gives this f.)
+// f is convex and C1: the minimiser is the unconstrained one when it lies in the box, else
+// the best of the four faces, each a 1-D convex problem solved exactly and clipped.
+inline Vec2 clf_qp_solve(double a, Vec2 b, double w, double lim = 1.0) {
+    auto f = [&](Vec2 u) { double c = std::max(0.0, a + dot(b, u)); return dot(u, u) + w * c * c; };
+    if (a <= 0) return {0, 0};  // u = 0 already satisfies the constraint at zero cost
+    Vec2 inner = b * (-w * a / (1 + w * dot(b, b)));
+    if (std::fabs(inner.x) <= lim && std::fabs(inner.y) <= lim) return inner;
+    // Face with coordinate `k` fixed at `fixed`: minimise t^2 + w max(0, alpha + beta t)^2.
+    auto face = [&](int k, double fixed) {
+        double alpha = a + (k == 0 ? b.x : b.y) * fixed, beta = k == 0 ? b.y : b.x;
+        double t = alpha > 0 ? -w * alpha * beta / (1 + w * beta * beta) : 0.0;
+        t = std::clamp(t, -lim, lim);
+        return k == 0 ? Vec2{fixed, t} : Vec2{t, fixed};
+    };
+    Vec2 best = face(0, lim);
+    for (Vec2 c : {face(0, -lim), face(1, lim), face(1, -lim)})
+        if (f(c) < f(best)) best = c;
+    return best;
+}
+
+// The CLF-QP action of one agent with position error e = p - g and velocity v.
+inline Vec2 clf_qp_action(Vec2 e, Vec2 v, const ClfQpParams& prm, const WorldConfig& wc = WorldConfig{}) {
+    double gamma = prm.drag_in_lfv ? -std::log(1 - wc.drag) / wc.dt : 0.0;
+    Vec2 dv = e * 2 + v * prm.c_ev;        // dV/de
+    Vec2 lgv = e * prm.c_ev + v * (2 * prm.c_vv);  // dV/dv
+    double V = dot(e, e) + prm.c_ev * dot(e, v) + prm.c_vv * dot(v, v);
+    double lfv = dot(dv, v) - gamma * dot(lgv, v);
+    return clf_qp_solve(lfv + prm.eps * V, lgv, prm.slack_weight, wc.max_action);
+}
+
+struct ClfQp : Policy {
+    ClfQpParams params;
+    explicit ClfQp(ClfQpParams p = ClfQpParams{}) : params(p) {}
+    std::vector<Vec2> act(const World& world) override {
+        std::vector<Vec2> u;
+        for (const Agent& a : world.agents()) u.push_back(clf_qp_action(a.pos - a.goal, a.vel, params, world.config()));
+        return u;
+    }
+};
+
+// =============================================================================================
+// Section 9. Tracker and safety filter (SPEC 3.2)
+// =============================================================================================
+
+// PD tracking of a planned waypoint with drag feed-forward, as a one-step model-predictive
+// law: the force minimising |p' - w1|^2 + velocity_weight * |v' - v_ref|^2 under the exact
+// one-step model, where w1 is the waypoint for the next step and v_ref the planned velocity
+// there. Expanded, u = Kp (w1 - p - pv v) + Kd (v_ref - vv v): a PD law whose "- vv v" terms
+// feed drag forward. Components are clamped to [-1, 1].
+struct TrackerParams {
+    double velocity_weight = 0.01;  // s^2; 0 = position only (deadbeat), larger = smoother
+};
+inline Vec2 track_waypoint(Vec2 p, Vec2 v, Vec2 w1, Vec2 v_ref, const StepModel& m, const TrackerParams& prm,
+                           double lim = 1.0) {
+    double lam = prm.velocity_weight, den = m.pu * m.pu + lam * m.vu * m.vu;
+    Vec2 u = ((w1 - p - v * m.pv) * m.pu + (v_ref - v * m.vv) * (lam * m.vu)) / den;
+    return clamp_box(u, lim);
+}
+
+// A control-barrier-function filter. For every neighbour (agent within `range`, obstacle or
+// wall within `range`) with gap h = distance - (sum of radii + margin) and unit direction n
+// (from the neighbour to this agent), it requires the velocity after the step to close the
+// gap no faster than `rate * h`:
+//   agent pair:  n.(v_i' - v_j') >= -rate * h, shared reciprocally: agent i takes share
+//                s_ij of the correction its nominal action needs (s_ij = 0.5 by default;
+//                priorities change it), so when both comply the pair is safe;
+//   static:      n.v_i' >= -rate * h, all on agent i.
+// Each agent then takes the action closest to its nominal one under these half-planes and the
+// box |u_i| <= 1: an exact 2-D QP (detail::closest_feasible). When the constraints cannot all
+// hold it maximises the smallest margin instead. The filter never adds a goal-directed term:
+// with a nominal "hold position" it only ever pushes agents apart.
+struct SafetyFilterParams {
+    double margin = 0.03;  // gap kept beyond touching, world units, >= 0
+    double rate = 2.5;     // rate of the barrier, 1/s, in (0, 1/dt)
+    double range = 0.6;    // neighbours whose centres are within this distance count, world units
+};
+
+namespace detail {
+// Half-plane a.u >= b.
+struct HalfPlane { Vec2 a; double b; };
+
+// The point of the box |u_i| <= lim closest to `target` satisfying every half-plane, exactly,
+// by enumerating the candidates of a 2-D QP (the target, its projection on each line, each
+// pair of lines' intersection). When none is feasible, returns the candidate that maximises
+// the smallest normalized slack (a best-effort fallback). Returns whether it was feasible.
+inline bool closest_feasible(Vec2 target, std::vector<HalfPlane>& hp, double lim, Vec2* out) {
+    const double tol = 1e-9;
+    size_t m_agent = hp.size();
+    hp.push_back({{1, 0}, -lim});
+    hp.push_back({{-1, 0}, -lim});
+    hp.push_back({{0, 1}, -lim});
+    hp.push_back({{0, -1}, -lim});
+    auto slack = [&](Vec2 u) {  // smallest normalized slack over all half-planes
+        double s = 1e300;
+        for (const HalfPlane& h : hp) s = std::min(s, (dot(h.a, u) - h.b) / std::max(norm(h.a), 1e-12));
+        return s;
+    };
+    std::vector<Vec2> cand{target};
+    for (const HalfPlane& h : hp) {
+        double aa = dot(h.a, h.a);
+        if (aa > 1e-18) cand.push_back(target + h.a * ((h.b - dot(h.a, target)) / aa));
+    }
+    for (size_t i = 0; i < hp.size(); ++i)
+        for (size_t j = i + 1; j < hp.size(); ++j) {
+            double det = cross(hp[i].a, hp[j].a);
+            if (std::fabs(det) < 1e-12) continue;
+            cand.push_back({(hp[i].b * hp[j].a.y - hp[j].b * hp[i].a.y) / det, (hp[i].a.x * hp[j].b - hp[j].a.x * hp[i].b) / det});
+        }
+    bool found = false;
+    double best = 1e300;
+    for (Vec2 c : cand) {
+        if (slack(c) < -tol) continue;
+        double d = dot(c - target, c - target);
+        if (d < best) { best = d; *out = c; found = true; }
+    }
+    if (!found) {
+        // Infeasible: the box point with the largest worst-case slack over the agent's own
+        // constraints, searched over the candidates (clipped into the box) and a ring.
+        for (int k = 0; k < 32; ++k) cand.push_back({lim * std::cos(k * 0.19634954084936207), lim * std::sin(k * 0.19634954084936207)});
+        hp.resize(m_agent);
+        double best_slack = -1e300;
+        for (Vec2 c : cand) {
+            c = clamp_box(c, lim);
+            double s = slack(c) - 1e-9 * norm(c - target);  // ties: closer to the target
+            if (s > best_slack) { best_slack = s; *out = c; }
+        }
+    }
+    hp.resize(m_agent);
+    return found;
+}
+}  // namespace detail
+
+// Filters `nominal` (one action per agent, in agents() order) and returns the safe actions.
+// `share[i][j]`-style priorities: `responsibility(i, j)` gives agent i's share of a pair's
+// correction (default 0.5 each; the two shares of a pair must add to 1).
+inline std::vector<Vec2> safety_filter(const World& world, const std::vector<Vec2>& nominal, const SafetyFilterParams& prm,
+                                       const std::function<double(int, int)>& responsibility = nullptr,
+                                       int* infeasible = nullptr) {
+    const auto& ag = world.agents();
+    const int n = (int)ag.size();
+    MADBP_ASSERT((int)nominal.size() == n);
+    StepModel m(world.config());
+    double r = world.config().radius, lim = world.config().max_action;
+    std::vector<Vec2> vnext(n), out(n);
+    for (int i = 0; i < n; ++i) vnext[i] = ag[i].vel * m.vv + clamp_box(nominal[i], lim) * m.vu;
+    int bad = 0;
+    std::vector<detail::HalfPlane> hp;
+    for (int i = 0; i < n; ++i) {
+        hp.clear();
+        Vec2 un = clamp_box(nominal[i], lim);
+        for (int j = 0; j < n; ++j) {
+            if (j == i) continue;
+            Vec2 d = ag[i].pos - ag[j].pos;
+            double dist = norm(d);
+            if (dist > prm.range) continue;
+            Vec2 nrm = dist > 1e-12 ? d / dist : Vec2{(i < j) ? -1.0 : 1.0, 0.0};
+            double h = dist - 2 * r - prm.margin;
+            double need = -prm.rate * h - dot(nrm, vnext[i] - vnext[j]);  // > 0: nominal closes too fast
+            double share = responsibility ? responsibility(i, j) : 0.5;
+            // n.u_i >= n.u_nom + share * need / vu  (the agent's part of the correction)
+            hp.push_back({nrm, dot(nrm, un) + share * need / m.vu});
+        }
+        // Walls and obstacles: the nearest surface point of each within range.
+        const Map& map = world.map();
+        Vec2 p = ag[i].pos, v = ag[i].vel;
+        auto add_static = [&](double dist_to_surface, Vec2 away) {
+            if (dist_to_surface > prm.range) return;
+            double h = dist_to_surface - r - prm.margin;
+            // n.(vv v + vu u) >= -rate h
+            hp.push_back({away, (-prm.rate * h - m.vv * dot(away, v)) / m.vu});
+        };
+        double hs = map.half_size;
+        add_static(hs - p.x, {-1, 0});
+        add_static(p.x + hs, {1, 0});
+        add_static(hs - p.y, {0, -1});
+        add_static(p.y + hs, {0, 1});
+        for (const Disc& o : map.discs) {
+            Vec2 d = p - o.c;
+            double dist = norm(d);
+            add_static(dist - o.r, dist > 1e-12 ? d / dist : Vec2{1, 0});
+        }
+        for (const Box& b : map.boxes) {
+            Vec2 away;
+            double dist = box_distance(b, p, &away);
+            add_static(dist, away);
+        }
+        if (!detail::closest_feasible(un, hp, lim, &out[i])) bad++;
+    }
+    if (infeasible) *infeasible = bad;
+    return out;
+}
+
+// =============================================================================================
+// Section 10. Plans, the straight-line planner and the plan follower (SPEC 3.2, 3.5, 8)
+// =============================================================================================
+
+// A window of waypoints for the active agents: waypoints[i][k] is the planned position of
+// agent ids[i] at step t0 + k + 1 (k = 0 .. horizon-1), where t0 is the step at which the
+// plan was made. plan_ms: the planner's wall time for this plan.
+struct Plan {
+    std::vector<int> ids;
+    std::vector<std::vector<Vec2>> waypoints;
+    double plan_ms = 0;
+};
+// Any planner: a function from the current world to a plan for all its present agents.
+using Planner = std::function<Plan(const World&)>;
+
+// Throws std::invalid_argument unless `plan` covers exactly the present agents of `world`,
+// once each, with at least one finite waypoint each.
+inline void validate_plan(const Plan& plan, const World& world) {
+    if (plan.waypoints.size() != plan.ids.size())
+        throw std::invalid_argument("plan: " + std::to_string(plan.ids.size()) + " ids but " +
+                                    std::to_string(plan.waypoints.size()) + " waypoint lists");
+    std::vector<int> seen;
+    for (size_t i = 0; i < plan.ids.size(); ++i) {
+        int id = plan.ids[i];
+        if (std::find(seen.begin(), seen.end(), id) != seen.end()) throw std::invalid_argument("plan: duplicate agent id " + std::to_string(id));
+        seen.push_back(id);
+        if (world.index_of(id) < 0) throw std::invalid_argument("plan: agent id " + std::to_string(id) + " is not in the world");
+        if (plan.waypoints[i].empty()) throw std::invalid_argument("plan: agent " + std::to_string(id) + " has no waypoints");
+        for (size_t k = 0; k < plan.waypoints[i].size(); ++k) {
+            Vec2 w = plan.waypoints[i][k];
+            if (!std::isfinite(w.x) || !std::isfinite(w.y))
+                throw std::invalid_argument("plan: waypoint " + std::to_string(k) + " of agent " + std::to_string(id) + " is not finite");
+        }
+    }
+    if ((int)seen.size() != world.size()) throw std::invalid_argument("plan: covers " + std::to_string(seen.size()) + " of " + std::to_string(world.size()) + " agents");
+}
+
+// The straight-line plan (SPEC 3.5): each agent moves toward its goal along a straight line
+// at `speed`, stopping there.
+struct LinePlanner {
+    int horizon = 16;     // waypoints per plan, >= 1
+    double speed = 0.35;  // world units per second, (0, 0.4]
+    Plan operator()(const World& world) const {
+        Plan plan;
+        double step = speed * world.config().dt;
+        for (const Agent& a : world.agents()) {
+            Vec2 d = a.goal - a.pos;
+            double dist = norm(d);
+            std::vector<Vec2> w;
+            for (int k = 1; k <= horizon; ++k) w.push_back(dist > 0 ? a.pos + d * (std::min(dist, step * k) / dist) : a.pos);
+            plan.ids.push_back(a.id);
+            plan.waypoints.push_back(w);
+        }
+        return plan;
+    }
+};
+
+// Executes plans (SPEC 8): replans every `replan_every` steps (and whenever the set of agents
+// changed or the window ran out), tracks the waypoints with the tracker, then applies the
+// safety filter when enabled. Make one per episode.
+struct FollowerConfig {
+    int replan_every = 8;        // m, steps executed per plan, >= 1
+    bool safety_filter = true;   // run the SPEC 3.2 filter after the tracker
+    TrackerParams tracker;
+    SafetyFilterParams filter;
+};
+class PlanFollower : public Policy {
+public:
+    explicit PlanFollower(Planner planner, FollowerConfig cfg = FollowerConfig{}) : planner_(std::move(planner)), cfg_(cfg) {
+        if (cfg_.replan_every < 1) throw std::invalid_argument("replan_every: must be >= 1 (got " + std::to_string(cfg_.replan_every) + ")");
+    }
+    std::vector<Vec2> act(const World& world) override {
+        if (needs_plan(world)) {
+            auto t0 = std::chrono::steady_clock::now();
+            Plan p = planner_(world);
+            double ms = std::chrono::duration<double, std::milli>(std::chrono::steady_clock::now() - t0).count();
+            validate_plan(p, world);
+            if (p.plan_ms <= 0) p.plan_ms = ms;
+            plan_ = std::move(p);
+            plan_t0_ = world.t();
+            total_ms_ += plan_.plan_ms;
+            plans_++;
+        }
+        StepModel model(world.config());
+        int k = world.t() - plan_t0_;
+        double dt = world.config().dt;
+        std::vector<Vec2> u(world.size());
+        for (size_t i = 0; i < plan_.ids.size(); ++i) {
+            const Agent& a = world.agents()[world.index_of(plan_.ids[i])];
+            const std::vector<Vec2>& w = plan_.waypoints[i];
+            int last = (int)w.size() - 1;
+            Vec2 w1 = w[std::min(k, last)];
+            // Planned velocity at w1: toward the next waypoint; zero once the window ends.
+            Vec2 v_ref = k + 1 <= last ? (w[k + 1] - w1) / dt : Vec2{0, 0};
+            u[world.index_of(plan_.ids[i])] = track_waypoint(a.pos, a.vel, w1, v_ref, model, cfg_.tracker, world.config().max_action);
+        }
+        if (cfg_.safety_filter) u = safety_filter(world, u, cfg_.filter);
+        return u;
+    }
+    double plan_ms() const override { return plans_ ? total_ms_ / plans_ : 0; }
+    int plans() const { return plans_; }
+    const Plan& plan() const { return plan_; }
+
+private:
+    Planner planner_;
+    FollowerConfig cfg_;
+    Plan plan_;
+    int plan_t0_ = 0, plans_ = 0;
+    double total_ms_ = 0;
+    bool needs_plan(const World& world) const {
+        if (plans_ == 0 || world.t() < plan_t0_ || world.t() - plan_t0_ >= cfg_.replan_every) return true;
+        if ((int)plan_.ids.size() != world.size()) return true;
+        for (int id : plan_.ids) if (world.index_of(id) < 0) return true;
+        int longest = 0;
+        for (const auto& w : plan_.waypoints) longest = std::max(longest, (int)w.size());
+        return world.t() - plan_t0_ >= longest;
+    }
+};
+
+
+// =============================================================================================
+// Section 11. Episodes and evaluation (SPEC 9, 10)
+// =============================================================================================
+
+// What an episode looked like, for rendering: frames[0] is the start, frames[t] the state
+// after step t. Agents can differ between frames (joins and leaves).
+struct Frame {
+    std::vector<int> ids;
+    std::vector<Vec2> pos, goal;
+    std::vector<Vec2> collisions;  // points where a collision was counted at this step
+};
+struct EpisodeLog {
+    Map map;
+    double radius = 0.1, goal_tolerance = 0.1, dt = 0.1;
+    std::vector<Frame> frames;
+    void record(const World& w) {
+        Frame f;
+        for (const Agent& a : w.agents()) { f.ids.push_back(a.id); f.pos.push_back(a.pos); f.goal.push_back(a.goal); }
+        for (auto pr : w.last_agent_contacts()) f.collisions.push_back((w.agent(pr.first).pos + w.agent(pr.second).pos) * 0.5);
+        for (int id : w.last_static_contacts()) f.collisions.push_back(w.agent(id).pos);
+        frames.push_back(std::move(f));
+    }
+};
+
+struct EpisodeResult {
+    bool success = false;
+    int steps = 0;               // steps to success, or steps taken when it failed
+    int agents = 0;              // agents present at the end
+    long agent_collisions = 0, obstacle_collisions = 0;
+    double plan_ms = 0;          // the policy's mean plan time
+    EpisodeLog log;              // filled when recording
+    long collisions() const { return agent_collisions + obstacle_collisions; }
+};
+
+// Runs `policy` on `world` until done(). `on_step(world)`, when given, runs before every
+// step (e.g. to add or remove agents).
+inline EpisodeResult run_episode(World& world, Policy& policy, bool record = false,
+                                 const std::function<void(World&)>& on_step = nullptr) {
+    EpisodeResult r;
+    if (record) {
+        r.log.map = world.map();
+        r.log.radius = world.config().radius;
+        r.log.goal_tolerance = world.config().goal_tolerance;
+        r.log.dt = world.config().dt;
+        r.log.record(world);
+    }
+    while (!world.done()) {
+        if (on_step) on_step(world);
+        world.step(policy.act(world));
+        if (record) r.log.record(world);
+    }
+    const Metrics& m = world.metrics();
+    r.success = m.success;
+    r.steps = m.success ? m.success_step : m.steps;
+    r.agents = world.size();
+    r.agent_collisions = m.agent_collisions;
+    r.obstacle_collisions = m.obstacle_collisions;
+    r.plan_ms = policy.plan_ms();
+    return r;
+}
+
+// Makes the policy for one episode from its fresh world and seed. Called from several
+// threads when EvalConfig::threads > 1.
+using PolicyFactory = std::function<std::unique_ptr<Policy>(const World& world, uint64_t seed)>;
+
+struct EvalConfig {
+    std::string map = "empty";   // map name (ignored with a scene)
+    int agents = 2;              // agents per episode (ignored with a scene)
+    int episodes = 100;          // >= 1
+    uint64_t seed = 0;           // episode i uses seed + i (SPEC 10)
+    double half_size = 1.2;      // world half-size for random maps
+    const Scene* scene = nullptr;  // a fixed problem; then seeds vary only the policy's randomness
+    int threads = 1;             // episodes run in parallel
+    bool quiet = false;          // no progress line
+    WorldConfig world;
+};
+struct EvalResult {
+    int episodes = 0;
+    double success = 0, success_se = 0;  // fraction and its standard error sqrt(p(1-p)/N)
+    double collisions = 0;               // per episode (agent-agent + agent-static)
+    double agent_collisions = 0, obstacle_collisions = 0;  // per episode
+    double steps = 0;                    // mean steps of successful episodes (NaN if none)
+    double plan_ms = 0;                  // mean of the episodes' mean plan times
+    std::vector<EpisodeResult> runs;     // per episode, without logs
+};
+inline World make_episode_world(const EvalConfig& c, uint64_t seed) {
+    return c.scene ? make_world(*c.scene, c.world) : make_random_world(c.map, c.agents, seed, c.half_size, c.world);
+}
+inline EvalResult evaluate(const EvalConfig& c, const PolicyFactory& factory) {
+    if (c.episodes < 1) throw std::invalid_argument("episodes: must be >= 1 (got " + std::to_string(c.episodes) + ")");
+    if (!c.scene) make_episode_world(c, c.seed);  // fail early and clearly on a bad map name or count
+    EvalResult r;
+    r.episodes = c.episodes;
+    r.runs.resize(c.episodes);
+    ProgressLine progress("eval " + (c.scene ? std::string("scene") : c.map) + " n=" + std::to_string(c.agents), c.episodes, c.quiet);
+    std::string error;
+#pragma omp parallel for schedule(dynamic) num_threads(std::max(1, c.threads))
+    for (int e = 0; e < c.episodes; ++e) {
+        try {
+            World w = make_episode_world(c, c.seed + e);
+            std::unique_ptr<Policy> policy = factory(w, c.seed + e);
+            r.runs[e] = run_episode(w, *policy);
+        } catch (const std::exception& ex) {
+#pragma omp critical
+            if (error.empty()) error = "episode with seed " + std::to_string(c.seed + e) + ": " + ex.what();
+        }
+#pragma omp critical
+        progress.tick();
+    }
+    if (!error.empty()) throw std::runtime_error(error);
+    int wins = 0;
+    double steps = 0;
+    for (const EpisodeResult& e : r.runs) {
+        wins += e.success;
+        if (e.success) steps += e.steps;
+        r.agent_collisions += e.agent_collisions;
+        r.obstacle_collisions += e.obstacle_collisions;
+        r.plan_ms += e.plan_ms;
+    }
+    double N = c.episodes;
+    r.success = wins / N;
+    r.success_se = std::sqrt(r.success * (1 - r.success) / N);
+    r.agent_collisions /= N;
+    r.obstacle_collisions /= N;
+    r.collisions = r.agent_collisions + r.obstacle_collisions;
+    r.steps = wins ? steps / wins : std::numeric_limits<double>::quiet_NaN();
+    r.plan_ms /= N;
+    return r;
+}
+
+
+// =============================================================================================
+// Section 12. Guided expert (SPEC 3.6)
+// =============================================================================================
+
+// Wavefront distance to one goal on a fine grid over the world (cell `cell`), around the
+// static map. Cells whose centre is closer than `inflate` to an obstacle or wall cost more to
+// cross (x `band_cost`; inside the real obstacle x 1000), so paths keep a robot's clearance
+// yet a robot pushed into the band still has a way out. Dijkstra, 8-connected, the cost of a
+// move is its length times the mean cost factor of its two cells.
+struct DistanceField {
+    int n = 0;                 // cells per side
+    double cell = 0.04, half = 1.2;
+    Vec2 goal;
+    std::vector<float> dist;   // path cost to the goal, per cell, row-major, row 0 = lowest y
+    std::vector<int> next;     // the neighbour one step closer to the goal (-1 at the goal)
+    int index(Vec2 p) const {
+        int col = std::clamp((int)((p.x + half) / cell), 0, n - 1), row = std::clamp((int)((p.y + half) / cell), 0, n - 1);
+        return row * n + col;
+    }
+    Vec2 centre(int k) const { return {-half + (k % n + 0.5) * cell, -half + (k / n + 0.5) * cell}; }
+};
+// Static clearance (distance to the nearest obstacle or wall surface) at every cell centre.
+struct ClearanceGrid {
+    int n = 0;
+    double cell = 0.04, half = 1.2;
+    std::vector<float> clear;
+    ClearanceGrid() = default;
+    ClearanceGrid(const Map& map, double cell_) : cell(cell_), half(map.half_size) {
+        n = std::max(2, (int)std::ceil(2 * half / cell - 1e-9));
+        cell = 2 * half / n;
+        clear.resize((size_t)n * n);
+        for (int k = 0; k < n * n; ++k)
+            clear[k] = (float)static_clearance(map, {-half + (k % n + 0.5) * cell, -half + (k / n + 0.5) * cell});
+    }
+    float at(Vec2 p) const {
+        int col = std::clamp((int)((p.x + half) / cell), 0, n - 1), row = std::clamp((int)((p.y + half) / cell), 0, n - 1);
+        return clear[row * n + col];
+    }
+};
+inline DistanceField wavefront(const ClearanceGrid& cg, Vec2 goal, double radius, double inflate, double band_cost = 8) {
+    DistanceField f;
+    f.n = cg.n;
+    f.cell = cg.cell;
+    f.half = cg.half;
+    f.goal = goal;
+    const int N = f.n * f.n;
+    std::vector<float> factor(N);
+    for (int k = 0; k < N; ++k)
+        factor[k] = cg.clear[k] < radius ? 1000.f : cg.clear[k] < inflate ? (float)band_cost : 1.f;
+    f.dist.assign(N, std::numeric_limits<float>::infinity());
+    f.next.assign(N, -1);
+    using Item = std::pair<float, int>;
+    std::priority_queue<Item, std::vector<Item>, std::greater<Item>> q;
+    int g = f.index(goal);
+    f.dist[g] = 0;
+    q.push({0.f, g});
+    const int dr[8] = {0, 0, 1, -1, 1, 1, -1, -1}, dc[8] = {1, -1, 0, 0, 1, -1, 1, -1};
+    while (!q.empty()) {
+        auto [d, k] = q.top();
+        q.pop();
+        if (d > f.dist[k]) continue;
+        int row = k / f.n, col = k % f.n;
+        for (int e = 0; e < 8; ++e) {
+            int r2 = row + dr[e], c2 = col + dc[e];
+            if (r2 < 0 || r2 >= f.n || c2 < 0 || c2 >= f.n) continue;
+            int k2 = r2 * f.n + c2;
+            float len = (e < 4 ? 1.f : 1.41421356f) * (float)f.cell;
+            float nd = d + len * 0.5f * (factor[k] + factor[k2]);
+            if (nd < f.dist[k2]) {
+                f.dist[k2] = nd;
+                f.next[k2] = k;
+                q.push({nd, k2});
+            }
+        }
+    }
+    return f;
+}
+
+// The guided expert: a privileged classical planner for demonstrations and a strong
+// classical row. Per agent: the preferred velocity heads for the farthest point of its
+// wavefront path (within `lookahead`) that it can see in a straight line with clearance,
+// slowing near the goal; conflicts between agents are resolved by (1) a consistent passing
+// side (an agent ahead on a collision course turns the preferred velocity to the right),
+// (2) priorities in the safety filter (a moving agent takes less of a pair's correction than
+// an agent that has arrived, a longer initial path takes less than a shorter one), and
+// (3) deadlock breaking (an agent stalled away from its goal sidesteps to its right for a
+// while). The safety filter (SPEC 3.2) then makes the actions safe.
+struct ExpertParams {
+    double cell = 0.04;          // wavefront grid cell, world units
+    double inflate = 0.14;       // paths keep this clearance from obstacles (radius + margin), world units
+    double speed = 0.38;         // cruise speed, world units/s, <= 0.4 per axis
+    double goal_gain = 2.5;      // near the goal v_pref = goal_gain * (goal - p), 1/s
+    double lookahead = 0.8;      // path length searched for a visible target, world units
+    double pass_range = 0.7;     // agents ahead within this distance trigger the passing side, world units
+    double pass_angle = 0.9;     // largest turn to the right for the passing side, radians
+    double priority_share = 0.2; // share of a pair's correction taken by the higher-priority agent, [0, 0.5]
+    int stall_steps = 8;         // steps of stalling before a sidestep
+    int sidestep_steps = 6;      // length of a sidestep, steps
+    SafetyFilterParams filter;
+};
+class GuidedExpert : public Policy {
+public:
+    explicit GuidedExpert(const Map& map, ExpertParams p = ExpertParams{}, uint64_t seed = 0)
+        : map_(map), prm_(p), clearance_(map, p.cell), rng_(seed) {}
+
+    std::vector<Vec2> act(const World& world) override {
+        const auto& ag = world.agents();
+        const int n = (int)ag.size();
+        const double r = world.config().radius;
+        StepModel model(world.config());
+        std::vector<Vec2> pref(n), u(n);
+        std::vector<double> prio(n);
+        for (int i = 0; i < n; ++i) {
+            State& st = state_for(ag[i], r);
+            pref[i] = preferred_velocity(ag[i], st, world);
+            prio[i] = world.at_goal(ag[i]) ? -1.0 : st.initial_cost;
+        }
+        // (1) Passing side: turn right when an agent is ahead on a collision course.
+        for (int i = 0; i < n; ++i) {
+            double sp = norm(pref[i]);
+            if (sp < 1e-6) continue;
+            Vec2 dir = pref[i] / sp;
+            double turn = 0;
+            for (int j = 0; j < n; ++j) {
+                if (j == i) continue;
+                Vec2 d = ag[j].pos - ag[i].pos;
+                double along = dot(d, dir), lateral = cross(dir, d);  // lateral > 0: j on the left
+                if (along <= 0 || along > prm_.pass_range || std::fabs(lateral) > 2 * r + prm_.filter.margin + 0.05) continue;
+                if (lateral < -r) continue;  // clearly on the right already: turning right would cut in
+                turn = std::max(turn, prm_.pass_angle * (1 - along / prm_.pass_range));
+            }
+            if (turn > 0) pref[i] = (dir * std::cos(turn) - perp(dir) * std::sin(turn)) * sp;
+        }
+        // (3) Deadlock breaking.
+        for (int i = 0; i < n; ++i) {
+            State& st = states_[ag[i].id];
+            bool stalled = !world.at_goal(ag[i]) && norm(ag[i].vel) < 0.05;
+            st.stalled = stalled ? st.stalled + 1 : 0;
+            if (st.stalled >= prm_.stall_steps && st.sidestep == 0) {
+                st.sidestep = prm_.sidestep_steps;
+                double s = rng_.uniform() < 0.5 ? 1 : -1;  // random side: breaks symmetric standoffs
+                Vec2 dir = normalized(pref[i]);
+                if (norm(dir) == 0) dir = normalized(ag[i].goal - ag[i].pos);
+                st.side = perp(dir) * s;
+                st.stalled = 0;
+            }
+            if (st.sidestep > 0) {
+                st.sidestep--;
+                pref[i] = (st.side * 0.8 + normalized(pref[i]) * 0.2) * prm_.speed;
+            }
+        }
+        for (int i = 0; i < n; ++i) u[i] = clamp_box(model.force_for_velocity(ag[i].vel, pref[i]), world.config().max_action);
+        // (2) Priorities: the higher-priority agent of a pair takes the smaller share.
+        auto share = [&](int i, int j) {
+            if (prio[i] == prio[j]) return 0.5;
+            return prio[i] > prio[j] ? prm_.priority_share : 1 - prm_.priority_share;
+        };
+        return safety_filter(world, u, prm_.filter, share);
+    }
+
+    // The wavefront field for a goal (computed once per goal and cached).
+    const DistanceField& field(Vec2 goal, double radius) {
+        for (auto& f : fields_) if (f.goal == goal) return f;
+        fields_.push_back(wavefront(clearance_, goal, radius, prm_.inflate));
+        return fields_.back();
+    }
+
+private:
+    struct State {
+        Vec2 goal;
+        double initial_cost = 0;
+        int stalled = 0, sidestep = 0;
+        Vec2 side;
+    };
+    Map map_;
+    ExpertParams prm_;
+    ClearanceGrid clearance_;
+    Rng rng_;
+    std::deque<DistanceField> fields_;
+    std::map<int, State> states_;
+
+    State& state_for(const Agent& a, double radius) {
+        auto it = states_.find(a.id);
+        if (it == states_.end() || !(it->second.goal == a.goal)) {
+            State st;
+            st.goal = a.goal;
+            st.initial_cost = field(a.goal, radius).dist[field(a.goal, radius).index(a.pos)];
+            it = states_.insert_or_assign(a.id, st).first;
+        }
+        return it->second;
+    }
+    // Straight segment from a to b keeps `need` clearance (checked every half cell).
+    bool visible(Vec2 a, Vec2 b, double need) const {
+        double len = norm(b - a);
+        int steps = std::max(1, (int)std::ceil(len / (clearance_.cell * 0.5)));
+        for (int k = 1; k <= steps; ++k)
+            if (clearance_.at(a + (b - a) * ((double)k / steps)) < need) return false;
+        return true;
+    }
+    Vec2 preferred_velocity(const Agent& a, const State& st, const World& world) {
+        const DistanceField& f = field(a.goal, world.config().radius);
+        Vec2 to_goal = a.goal - a.pos;
+        double need = std::min((double)clearance_.at(a.pos), prm_.inflate) - 1e-9;
+        Vec2 target = a.goal;
+        if (!visible(a.pos, a.goal, need) || norm(to_goal) > prm_.lookahead) {
+            // Walk the wavefront path; keep the farthest visible cell within the lookahead.
+            int k = f.index(a.pos);
+            target = f.centre(f.next[k] >= 0 ? f.next[k] : k);
+            double walked = 0;
+            for (int guard = 0; k >= 0 && guard < 4 * f.n; ++guard) {
+                int nk = f.next[k];
+                if (nk < 0) break;
+                walked += norm(f.centre(nk) - f.centre(k));
+                if (walked > prm_.lookahead) break;
+                k = nk;
+                Vec2 c = f.next[k] < 0 ? a.goal : f.centre(k);
+                if (visible(a.pos, c, need)) target = c;
+            }
+        }
+        Vec2 d = target - a.pos;
+        double dist_goal = norm(to_goal);
+        double speed = std::min(prm_.speed, prm_.goal_gain * dist_goal);
+        return normalized(d) * speed;
+    }
+};
+
+// =============================================================================================
+// Section 13. SVG rendering (SPEC 2)
+// =============================================================================================
+
+// A static picture of an episode (map, goals, trajectories, start and end discs, collisions
+// as red crosses) or, with `animate`, an SVG whose agents move in real time (SMIL
+// <animate>, plays in browsers) over faint trajectories. `title` is written at the top.
+struct SvgOptions {
+    bool animate = false;
+    double pixels_per_unit = 200;  // scale, > 0
+    std::string title;
+};
+namespace detail {
+inline const char* agent_colour(int id) {
+    static const char* palette[] = {"#1f77b4", "#ff7f0e", "#2ca02c", "#d62728", "#9467bd", "#8c564b",
+                                    "#e377c2", "#7f7f7f", "#bcbd22", "#17becf", "#393b79", "#ad494a"};
+    return palette[((id % 12) + 12) % 12];
+}
+inline std::string fmt(double v) {
+    char b[32];
+    std::snprintf(b, sizeof b, "%.1f", v);
+    return b;
+}
+}  // namespace detail
+inline std::string render_svg(const EpisodeLog& log, const SvgOptions& opt = SvgOptions{}) {
+    MADBP_ASSERT(!log.frames.empty());
+    double h = log.map.half_size, S = opt.pixels_per_unit, top = opt.title.empty() ? 0 : 24;
+    auto X = [&](double x) { return detail::fmt((x + h) * S); };
+    auto Y = [&](double y) { return detail::fmt((h - y) * S + top); };
+    auto L = [&](double l) { return detail::fmt(l * S); };
+    std::ostringstream o;
+    double W = 2 * h * S;
+    o << "<svg xmlns=\"http://www.w3.org/2000/svg\" width=\"" << detail::fmt(W) << "\" height=\"" << detail::fmt(W + top)
+      << "\" viewBox=\"0 0 " << detail::fmt(W) << " " << detail::fmt(W + top) << "\">\n";
+    o << "<rect x=\"0\" y=\"0\" width=\"" << detail::fmt(W) << "\" height=\"" << detail::fmt(W + top) << "\" fill=\"white\"/>\n";
+    if (!opt.title.empty()) {
+        std::string t;
+        for (char c : opt.title) t += c == '<' ? std::string("&lt;") : c == '&' ? std::string("&amp;") : std::string(1, c);
+        o << "<text x=\"6\" y=\"17\" font-family=\"sans-serif\" font-size=\"14\">" << t << "</text>\n";
+    }
+    o << "<rect x=\"0\" y=\"" << detail::fmt(top) << "\" width=\"" << detail::fmt(W) << "\" height=\"" << detail::fmt(W)
+      << "\" fill=\"#fafafa\" stroke=\"black\" stroke-width=\"3\"/>\n";
+    for (const Disc& d : log.map.discs)
+        o << "<circle cx=\"" << X(d.c.x) << "\" cy=\"" << Y(d.c.y) << "\" r=\"" << L(d.r) << "\" fill=\"#555\"/>\n";
+    for (const Box& b : log.map.boxes)
+        o << "<rect x=\"" << X(b.lo.x) << "\" y=\"" << Y(b.hi.y) << "\" width=\"" << L(b.hi.x - b.lo.x) << "\" height=\""
+          << L(b.hi.y - b.lo.y) << "\" fill=\"#555\"/>\n";
+    // Per agent id: its track (frames where present) and goal.
+    std::map<int, std::vector<std::pair<int, Vec2>>> tracks;
+    std::map<int, Vec2> goals;
+    for (size_t t = 0; t < log.frames.size(); ++t)
+        for (size_t i = 0; i < log.frames[t].ids.size(); ++i) {
+            tracks[log.frames[t].ids[i]].push_back({(int)t, log.frames[t].pos[i]});
+            goals[log.frames[t].ids[i]] = log.frames[t].goal[i];
+        }
+    for (auto& kv : goals)
+        o << "<circle cx=\"" << X(kv.second.x) << "\" cy=\"" << Y(kv.second.y) << "\" r=\"" << L(log.goal_tolerance)
+          << "\" fill=\"none\" stroke=\"" << detail::agent_colour(kv.first) << "\" stroke-width=\"2\" stroke-dasharray=\"4 3\"/>\n";
+    for (auto& kv : tracks) {
+        const char* col = detail::agent_colour(kv.first);
+        o << "<polyline fill=\"none\" stroke=\"" << col << "\" stroke-width=\"2\" stroke-opacity=\"" << (opt.animate ? "0.25" : "0.8")
+          << "\" points=\"";
+        for (auto& tp : kv.second) o << X(tp.second.x) << "," << Y(tp.second.y) << " ";
+        o << "\"/>\n";
+        Vec2 first = kv.second.front().second, last = kv.second.back().second;
+        if (!opt.animate) {
+            o << "<circle cx=\"" << X(first.x) << "\" cy=\"" << Y(first.y) << "\" r=\"" << L(log.radius) << "\" fill=\"" << col
+              << "\" fill-opacity=\"0.25\"/>\n";
+            o << "<circle cx=\"" << X(last.x) << "\" cy=\"" << Y(last.y) << "\" r=\"" << L(log.radius) << "\" fill=\"" << col
+              << "\" fill-opacity=\"0.85\"/>\n";
+            continue;
+        }
+        // Animated disc: positions per frame; hidden in frames where the agent is absent.
+        size_t T = log.frames.size();
+        std::string xs, ys, vis;
+        size_t k = 0;
+        Vec2 cur = first;
+        for (size_t t = 0; t < T; ++t) {
+            bool here = k < kv.second.size() && kv.second[k].first == (int)t;
+            if (here) cur = kv.second[k++].second;
+            xs += X(cur.x) + (t + 1 < T ? ";" : "");
+            ys += Y(cur.y) + (t + 1 < T ? ";" : "");
+            vis += std::string(here ? "1" : "0") + (t + 1 < T ? ";" : "");
+        }
+        std::string dur = detail::fmt(std::max<size_t>(T - 1, 1) * log.dt) + "s";
+        o << "<circle r=\"" << L(log.radius) << "\" fill=\"" << col << "\" fill-opacity=\"0.85\" cx=\"" << X(first.x) << "\" cy=\""
+          << Y(first.y) << "\">\n";
+        o << "  <animate attributeName=\"cx\" dur=\"" << dur << "\" repeatCount=\"indefinite\" values=\"" << xs << "\"/>\n";
+        o << "  <animate attributeName=\"cy\" dur=\"" << dur << "\" repeatCount=\"indefinite\" values=\"" << ys << "\"/>\n";
+        o << "  <animate attributeName=\"opacity\" dur=\"" << dur << "\" repeatCount=\"indefinite\" calcMode=\"discrete\" values=\"" << vis << "\"/>\n";
+        o << "</circle>\n";
+    }
+    for (const Frame& f : log.frames)
+        for (Vec2 c : f.collisions) {
+            double a = 0.04;
+            o << "<path d=\"M" << X(c.x - a) << "," << Y(c.y - a) << " L" << X(c.x + a) << "," << Y(c.y + a) << " M" << X(c.x - a) << ","
+              << Y(c.y + a) << " L" << X(c.x + a) << "," << Y(c.y - a) << "\" stroke=\"red\" stroke-width=\"2\"/>\n";
+        }
+    o << "</svg>\n";
+    return o.str();
+}
+// Writes `text` to `path` (std::runtime_error when it cannot).
+inline void write_text_file(const std::string& path, const std::string& text) {
+    std::ofstream f(path, std::ios::binary);
+    if (!f) throw std::runtime_error(path + ": cannot open for writing");
+    f << text;
+    if (!f) throw std::runtime_error(path + ": write failed");
 }
 
 }  // namespace madbp

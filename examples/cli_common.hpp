@@ -47,7 +47,7 @@ struct Args {
         std::string s = str(key, "");
         if (s.empty()) return def;
         size_t pos = 0;
-        long v;
+        long v = 0;
         try { v = std::stol(s, &pos); } catch (...) { pos = 0; }
         if (pos != s.size()) throw std::invalid_argument(key + ": expected an integer, got '" + s + "'");
         if (v < lo || v > hi)
@@ -58,7 +58,7 @@ struct Args {
         std::string s = str(key, "");
         if (s.empty()) return def;
         size_t pos = 0;
-        double v;
+        double v = 0;
         try { v = std::stod(s, &pos); } catch (...) { pos = 0; }
         if (pos != s.size() || !(v == v)) throw std::invalid_argument(key + ": expected a number, got '" + s + "'");
         if (v < lo || v > hi) throw std::invalid_argument(key + ": " + s + " is out of range");
@@ -72,7 +72,7 @@ struct Args {
         std::string item;
         while (std::getline(ss, item, ',')) {
             size_t pos = 0;
-            long v;
+            long v = 0;
             try { v = std::stol(item, &pos); } catch (...) { pos = 0; }
             if (item.empty() || pos != item.size()) throw std::invalid_argument(key + ": expected integers like 2,4,6, got '" + s + "'");
             if (v < lo || v > hi) throw std::invalid_argument(key + ": " + item + " is out of range");

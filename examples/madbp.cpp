@@ -1,0 +1,386 @@
+// madbp.cpp - the `madbp` command-line tool (SPEC 10).
+//
+//   madbp <subcommand> [options]     every subcommand takes --help, --seed, --json
+//
+// Adding things:
+//   - a method for `eval` / `render`: one entry in methods() below (name, help, and a function
+//     that reads its own options and returns a per-episode PolicyFactory). Planners plug in
+//     through madbp::PlanFollower; a header "methods_nn.hpp" that defines
+//     `void register_nn_methods(std::vector<madbp_cli::Method>&)` is picked up automatically.
+//   - a subcommand: one entry in subcommands() in main().
+// Bad input prints one line on stderr and exits with code 2.
+#include <omp.h>
+
+#include <cstring>
+#include <iostream>
+
+#include "cli_common.hpp"
+#include "madbp_sim.hpp"
+
+namespace madbp_cli {
+
+// Options shared by every method, read by eval and render.
+struct MethodSetup {
+    std::string map;      // map name, or "scene"
+    int agents = 0;       // team size of the cell
+    bool filter = true;   // --no-filter turns the safety filter off
+    int replan = 8;       // --replan M: steps executed per plan
+};
+// What a method gives eval: the per-episode policy and the training team size it reports.
+struct MethodSpec {
+    madbp::PolicyFactory factory;
+    int n_train = -1;     // -1: not a learned method (printed as "-", JSON null)
+};
+struct Method {
+    std::string name, help;
+    std::function<MethodSpec(Args&, const MethodSetup&)> make;  // reads its own options
+};
+
+}  // namespace madbp_cli
+
+#if __has_include("methods_nn.hpp")
+#include "methods_nn.hpp"
+#define MADBP_HAVE_NN_METHODS 1
+#endif
+#if __has_include("bench_nn.hpp")
+#include "bench_nn.hpp"
+#define MADBP_HAVE_BENCH_NN 1
+#endif
+
+using namespace madbp_cli;
+
+namespace {
+
+std::vector<Method> methods() {
+    std::vector<Method> m;
+    m.push_back({"clfqp", "CLF-QP (SPEC 3.1): per agent, ignores others and obstacles",
+                 [](Args&, const MethodSetup&) {
+                     return MethodSpec{[](const madbp::World&, uint64_t) { return std::make_unique<madbp::ClfQp>(); }};
+                 }});
+    m.push_back({"line", "straight-line plan + tracker (+ safety filter) (SPEC 3.5)",
+                 [](Args&, const MethodSetup& s) {
+                     madbp::FollowerConfig fc;
+                     fc.safety_filter = s.filter;
+                     fc.replan_every = s.replan;
+                     return MethodSpec{[fc](const madbp::World&, uint64_t) {
+                         return std::make_unique<madbp::PlanFollower>(madbp::LinePlanner{}, fc);
+                     }};
+                 }});
+    m.push_back({"expert", "guided expert: wavefront field + conflict resolution + safety filter (SPEC 3.6)",
+                 [](Args&, const MethodSetup& s) {
+                     madbp::ExpertParams ep;
+                     if (!s.filter) throw std::invalid_argument("--no-filter: the guided expert always uses its safety filter");
+                     return MethodSpec{[ep](const madbp::World& w, uint64_t seed) {
+                         return std::make_unique<madbp::GuidedExpert>(w.map(), ep, seed);
+                     }};
+                 }});
+#ifdef MADBP_HAVE_NN_METHODS
+    register_nn_methods(m);
+#endif
+    for (const char* later : {"madbp", "mappo", "madiff"}) {
+        bool present = false;
+        for (auto& x : m) present = present || x.name == later;
+        if (!present)
+            m.push_back({later, "(not available in this build yet)", [later](Args&, const MethodSetup&) -> MethodSpec {
+                             throw std::invalid_argument(std::string("--method ") + later + ": not available in this build yet");
+                         }});
+    }
+    return m;
+}
+
+const Method& find_method(const std::vector<Method>& all, const std::string& name) {
+    std::string names;
+    for (auto& m : all) {
+        if (m.name == name) return m;
+        names += (names.empty() ? "" : ", ") + m.name;
+    }
+    throw std::invalid_argument("--method: unknown method '" + name + "' (expected one of " + names + ")");
+}
+
+std::string method_list() {
+    std::string s;
+    for (auto& m : methods()) s += "    " + m.name + std::string(m.name.size() < 8 ? 8 - m.name.size() : 1, ' ') + m.help + "\n";
+    return s;
+}
+
+std::vector<std::string> split(const std::string& s) {
+    std::vector<std::string> out;
+    std::stringstream ss(s);
+    for (std::string item; std::getline(ss, item, ',');)
+        if (!item.empty()) out.push_back(item);
+    if (out.empty()) throw std::invalid_argument("empty list '" + s + "'");
+    return out;
+}
+
+std::string fixed(double v, int prec) {
+    if (!(v == v)) return "-";
+    char b[32];
+    std::snprintf(b, sizeof b, "%.*f", prec, v);
+    return b;
+}
+
+// ---------------------------------------------------------------------------------------------
+int cmd_eval(Args& a) {
+    if (a.flag("--help")) {
+        std::printf(
+            "madbp eval - success, collisions and steps of a method over seeded episodes (SPEC 10)\n"
+            "  --method M        method (default expert):\n%s"
+            "  --map NAMES       empty, obstacles, barrier; comma list (default empty)\n"
+            "  --agents LIST     team sizes, e.g. 2,4,6 (default 2,4,6)\n"
+            "  --episodes N      episodes per cell (default 100)\n"
+            "  --seed S          episode i uses seed S+i (default 0)\n"
+            "  --scene FILE      a fixed problem (SPEC 2) instead of random maps; seeds vary only\n"
+            "                    the method's own randomness\n"
+            "  --no-filter       turn the safety filter off (line and planners)\n"
+            "  --replan M        steps executed per plan (default 8)\n"
+            "  --threads T       episodes in parallel (default 1)\n"
+            "  --json            one JSON object per cell instead of the table\n"
+            "Columns: method, map, n_train, n, episodes, success, success_se, collisions (per\n"
+            "episode), steps (mean of successful episodes), plan_ms (mean per plan).\n",
+            method_list().c_str());
+        return 0;
+    }
+    std::string method_name = a.str("--method", "expert");
+    std::vector<std::string> maps = split(a.str("--map", "empty"));
+    std::vector<long> counts = a.integers("--agents", "2,4,6", 1, 64);
+    int episodes = (int)a.integer("--episodes", 100, 1, 1000000);
+    uint64_t seed = (uint64_t)a.integer("--seed", 0, 0);
+    std::string scene_path = a.str("--scene", "");
+    bool json = a.flag("--json");
+    MethodSetup setup;
+    setup.filter = !a.flag("--no-filter");
+    setup.replan = (int)a.integer("--replan", 8, 1, 1000);
+    int threads = (int)a.integer("--threads", 1, 1, 256);
+    auto all = methods();
+    const Method& method = find_method(all, method_name);
+    madbp::Scene scene;
+    if (!scene_path.empty()) {
+        scene = madbp::load_scene(scene_path);
+        maps = {"scene"};
+        counts = {(long)scene.starts.size()};
+    }
+    for (auto& m : maps) {  // validate names before any long run
+        madbp::Rng probe(0);
+        if (m != "scene") madbp::make_map(m, probe);
+    }
+    std::vector<MethodSpec> specs;
+    for (auto& m : maps)
+        for (long n : counts) {
+            setup.map = m;
+            setup.agents = (int)n;
+            specs.push_back(method.make(a, setup));
+        }
+    a.finish();
+    if (!json)
+        std::printf("%-8s %-10s %7s %3s %8s %8s %10s %10s %6s %8s\n", "method", "map", "n_train", "n", "episodes", "success",
+                    "success_se", "collisions", "steps", "plan_ms");
+    size_t cell = 0;
+    for (auto& m : maps)
+        for (long n : counts) {
+            const MethodSpec& spec = specs[cell++];
+            madbp::EvalConfig c;
+            c.map = m;
+            c.agents = (int)n;
+            c.episodes = episodes;
+            c.seed = seed;
+            c.threads = threads;
+            c.scene = scene_path.empty() ? nullptr : &scene;
+            madbp::EvalResult r = madbp::evaluate(c, spec.factory);
+            if (json) {
+                Json j;
+                j.add("method", method_name).add("map", m);
+                if (spec.n_train >= 0) j.add("n_train", spec.n_train); else j.raw("n_train", "null");
+                j.add("n", n).add("episodes", episodes).add("success", r.success).add("success_se", r.success_se)
+                    .add("collisions", r.collisions).add("agent_collisions", r.agent_collisions)
+                    .add("obstacle_collisions", r.obstacle_collisions).add("steps", r.steps).add("plan_ms", r.plan_ms)
+                    .add("seed", (long)seed);
+                std::printf("%s\n", j.line().c_str());
+            } else {
+                std::printf("%-8s %-10s %7s %3ld %8d %8s %10s %10s %6s %8s\n", method_name.c_str(), m.c_str(),
+                            spec.n_train >= 0 ? std::to_string(spec.n_train).c_str() : "-", n, episodes, fixed(r.success, 2).c_str(),
+                            fixed(r.success_se, 3).c_str(), fixed(r.collisions, 2).c_str(), fixed(r.steps, 1).c_str(),
+                            fixed(r.plan_ms, 3).c_str());
+            }
+            std::fflush(stdout);
+        }
+    return 0;
+}
+
+// Runs one recorded episode and writes its SVG; shared by render and demo.
+int render_episode(const Method& method, Args& a, MethodSetup setup, const madbp::Scene* scene, uint64_t seed,
+                   const std::string& out, bool animate, bool json) {
+    MethodSpec spec = method.make(a, setup);
+    a.finish();
+    madbp::World world = scene ? madbp::make_world(*scene) : madbp::make_random_world(setup.map, setup.agents, seed);
+    auto policy = spec.factory(world, seed);
+    madbp::EpisodeResult r = madbp::run_episode(world, *policy, true);
+    madbp::SvgOptions opt;
+    opt.animate = animate;
+    opt.title = method.name + "  " + setup.map + "  n=" + std::to_string(setup.agents) + "  seed " + std::to_string(seed) +
+                (r.success ? "  success in " + std::to_string(r.steps) + " steps" : "  failed") +
+                "  collisions " + std::to_string(r.collisions());
+    madbp::write_text_file(out, madbp::render_svg(r.log, opt));
+    if (json)
+        std::printf("%s\n", Json().add("method", method.name).add("map", setup.map).add("n", setup.agents).add("seed", (long)seed)
+                                .add("success", r.success).add("steps", r.steps).add("collisions", r.collisions())
+                                .add("out", out).line().c_str());
+    else
+        std::printf("%s: %s, %d steps, %ld collisions -> wrote %s\n", method.name.c_str(), r.success ? "success" : "failed",
+                    r.steps, r.collisions(), out.c_str());
+    return 0;
+}
+
+int cmd_render(Args& a) {
+    if (a.flag("--help")) {
+        std::printf(
+            "madbp render - run one episode and draw it as SVG (map, goals, trajectories, collisions)\n"
+            "  --method M     method (default expert):\n%s"
+            "  --map NAME     empty, obstacles, barrier (default barrier)\n"
+            "  --agents N     team size (default 4)\n"
+            "  --seed S       episode seed (default 0)\n"
+            "  --scene FILE   a fixed problem instead of a random one\n"
+            "  --out FILE     output (default episode.svg)\n"
+            "  --animate      an animated SVG that plays the episode\n"
+            "  --no-filter, --replan M   as for eval\n"
+            "  --json         print the result as JSON\n",
+            method_list().c_str());
+        return 0;
+    }
+    auto all = methods();
+    const Method& method = find_method(all, a.str("--method", "expert"));
+    MethodSetup setup;
+    setup.map = a.str("--map", "barrier");
+    setup.agents = (int)a.integer("--agents", 4, 1, 64);
+    setup.filter = !a.flag("--no-filter");
+    setup.replan = (int)a.integer("--replan", 8, 1, 1000);
+    uint64_t seed = (uint64_t)a.integer("--seed", 0, 0);
+    std::string scene_path = a.str("--scene", ""), out = a.str("--out", "episode.svg");
+    bool animate = a.flag("--animate"), json = a.flag("--json");
+    madbp::Scene scene;
+    if (!scene_path.empty()) {
+        scene = madbp::load_scene(scene_path);
+        setup.map = "scene";
+        setup.agents = (int)scene.starts.size();
+    }
+    return render_episode(method, a, setup, scene_path.empty() ? nullptr : &scene, seed, out, animate, json);
+}
+
+int cmd_demo(Args& a) {
+    if (a.flag("--help")) {
+        std::printf(
+            "madbp demo - a planning episode on the barrier map with 4 robots, drawn as SVG\n"
+            "  --seed S     episode seed (default 0)\n"
+            "  --out FILE   output (default demo.svg); an animated copy goes to FILE with -anim\n"
+            "  --json       print the result as JSON\n"
+            "Until the diffusion planner is built in, the demo runs the guided expert.\n");
+        return 0;
+    }
+    uint64_t seed = (uint64_t)a.integer("--seed", 0, 0);
+    std::string out = a.str("--out", "demo.svg");
+    bool json = a.flag("--json");
+    auto all = methods();
+    MethodSetup setup;
+    setup.map = "barrier";
+    setup.agents = 4;
+    std::string anim = out.size() > 4 && out.substr(out.size() - 4) == ".svg" ? out.substr(0, out.size() - 4) + "-anim.svg" : out + "-anim.svg";
+    render_episode(find_method(all, "expert"), a, setup, nullptr, seed, anim, true, false);
+    return render_episode(find_method(all, "expert"), a, setup, nullptr, seed, out, false, json);
+}
+
+int cmd_bench(Args& a) {
+    if (a.flag("--help")) {
+        std::printf(
+            "madbp bench - world steps per second for a batch of worlds stepping together\n"
+            "  --worlds N     worlds in the batch (default 1000)\n"
+            "  --agents N     agents per world (default 4)\n"
+            "  --steps N      steps timed (default 200)\n"
+            "  --threads LIST thread counts, e.g. 1,2 (default 1,2)\n"
+            "  --seed S       seed of the worlds and actions (default 0)\n"
+            "  --nn           benchmark the neural-network kernels instead (when built in)\n"
+            "  --json         one JSON object per thread count\n");
+        return 0;
+    }
+    if (a.flag("--nn")) {
+#ifdef MADBP_HAVE_BENCH_NN
+        return bench_nn(a);
+#else
+        throw std::invalid_argument("--nn: not available in this build yet");
+#endif
+    }
+    int worlds = (int)a.integer("--worlds", 1000, 1, 1000000);
+    int agents = (int)a.integer("--agents", 4, 1, 64);
+    int steps = (int)a.integer("--steps", 200, 1, 1000000);
+    std::vector<long> threads = a.integers("--threads", "1,2", 1, 256);
+    uint64_t seed = (uint64_t)a.integer("--seed", 0, 0);
+    bool json = a.flag("--json");
+    a.finish();
+    for (long th : threads) {
+        madbp::WorldBatch batch;
+        madbp::WorldConfig cfg;
+        cfg.max_steps = 1 << 30;
+        for (int w = 0; w < worlds; ++w) batch.worlds.push_back(madbp::make_random_world("obstacles", agents, seed + w, 1.2, cfg));
+        madbp::Rng rng(seed);
+        std::vector<std::vector<madbp::Vec2>> actions(worlds, std::vector<madbp::Vec2>(agents));
+        for (auto& wa : actions)
+            for (auto& u : wa) u = {rng.uniform(-1, 1), rng.uniform(-1, 1)};
+        omp_set_num_threads((int)th);
+        batch.step(actions);  // warm-up
+        auto t0 = std::chrono::steady_clock::now();
+        for (int s = 0; s < steps; ++s) batch.step(actions);
+        double secs = std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count();
+        double rate = (double)steps * worlds / secs;
+        if (json)
+            std::printf("%s\n", Json().add("bench", "world").add("worlds", worlds).add("agents", agents).add("threads", th)
+                                    .add("world_steps_per_s", rate).add("agent_steps_per_s", rate * agents).line().c_str());
+        else
+            std::printf("world bench: %d worlds x %d agents (obstacles map), %ld thread(s): %.3g world-steps/s (%.3g agent-steps/s)\n",
+                        worlds, agents, th, rate, rate * agents);
+    }
+    return 0;
+}
+
+struct Subcommand {
+    const char* name;
+    const char* help;
+    int (*run)(Args&);
+};
+
+const std::vector<Subcommand>& subcommands() {
+    static const std::vector<Subcommand> s = {
+        {"demo", "a planning episode on the barrier map, written as SVG", cmd_demo},
+        {"eval", "success / collisions / steps of a method over seeded episodes", cmd_eval},
+        {"render", "one episode drawn as (animated) SVG", cmd_render},
+        {"bench", "world stepping speed (and --nn kernels when built in)", cmd_bench},
+    };
+    return s;
+}
+
+void usage(FILE* f) {
+    std::fprintf(f, "madbp %d.%d.%d - multi-robot planning with diffusion (see README.md)\n\nusage: madbp <subcommand> [options]\n\n",
+                 MADBP_VERSION_MAJOR, MADBP_VERSION_MINOR, MADBP_VERSION_PATCH);
+    for (auto& s : subcommands()) std::fprintf(f, "  %-8s %s\n", s.name, s.help);
+    std::fprintf(f, "\nEvery subcommand takes --help, --seed and --json.\n");
+}
+
+}  // namespace
+
+int main(int argc, char** argv) {
+    if (argc < 2 || !std::strcmp(argv[1], "--help") || !std::strcmp(argv[1], "-h") || !std::strcmp(argv[1], "help")) {
+        usage(argc < 2 ? stderr : stdout);
+        return argc < 2 ? 2 : 0;
+    }
+    std::string name = argv[1];
+    try {
+        for (auto& s : subcommands()) {
+            if (name != s.name) continue;
+            Args args(argc, argv, 2);
+            return s.run(args);
+        }
+        for (const char* later : {"collect", "train", "mappo"})
+            if (name == later) throw std::invalid_argument(name + ": not available in this build yet");
+        throw std::invalid_argument("unknown subcommand '" + name + "' (try madbp --help)");
+    } catch (const std::exception& e) {  // bad flags, files, maps: one line, exit code 2
+        std::fprintf(stderr, "madbp %s: %s\n", name.c_str(), e.what());
+        return 2;
+    }
+}
