@@ -116,7 +116,6 @@ inline void require_finite(double v, const std::string& field) {
 
 #include <algorithm>
 #include <array>
-#include <deque>
 #include <fstream>
 #include <functional>
 #include <limits>
@@ -877,8 +876,9 @@ inline Vec2 track_waypoint(Vec2 p, Vec2 v, Vec2 w1, Vec2 v_ref, const StepModel&
 // hold it maximises the smallest margin instead. The filter never adds a goal-directed term:
 // with a nominal "hold position" it only ever pushes agents apart.
 struct SafetyFilterParams {
-    double margin = 0.03;  // gap kept beyond touching, world units, >= 0
-    double rate = 2.5;     // rate of the barrier, 1/s, in (0, 1/dt)
+    double margin = 0.03;         // gap kept between agents beyond touching, world units, >= 0
+    double static_margin = 0.01;  // gap kept to obstacles and walls beyond touching, world units, >= 0
+    double rate = 2.5;            // rate of the barrier, 1/s, in (0, 1/dt)
     double range = 0.6;    // neighbours whose centres are within this distance count, world units
 };
 
@@ -972,7 +972,7 @@ inline std::vector<Vec2> safety_filter(const World& world, const std::vector<Vec
         Vec2 p = ag[i].pos, v = ag[i].vel;
         auto add_static = [&](double dist_to_surface, Vec2 away) {
             if (dist_to_surface > prm.range) return;
-            double h = dist_to_surface - r - prm.margin;
+            double h = dist_to_surface - r - prm.static_margin;
             // n.(vv v + vu u) >= -rate h
             hp.push_back({away, (-prm.rate * h - m.vv * dot(away, v)) / m.vu});
         };
@@ -1252,225 +1252,284 @@ inline EvalResult evaluate(const EvalConfig& c, const PolicyFactory& factory) {
 // Section 12. Guided expert (SPEC 3.6)
 // =============================================================================================
 
-// Wavefront distance to one goal on a fine grid over the world (cell `cell`), around the
-// static map. Cells whose centre is closer than `inflate` to an obstacle or wall cost more to
-// cross (x `band_cost`; inside the real obstacle x 1000), so paths keep a robot's clearance
-// yet a robot pushed into the band still has a way out. Dijkstra, 8-connected, the cost of a
-// move is its length times the mean cost factor of its two cells.
-struct DistanceField {
-    int n = 0;                 // cells per side
-    double cell = 0.04, half = 1.2;
-    Vec2 goal;
-    std::vector<float> dist;   // path cost to the goal, per cell, row-major, row 0 = lowest y
-    std::vector<int> next;     // the neighbour one step closer to the goal (-1 at the goal)
-    int index(Vec2 p) const {
-        int col = std::clamp((int)((p.x + half) / cell), 0, n - 1), row = std::clamp((int)((p.y + half) / cell), 0, n - 1);
-        return row * n + col;
-    }
-    Vec2 centre(int k) const { return {-half + (k % n + 0.5) * cell, -half + (k / n + 0.5) * cell}; }
-};
-// Static clearance (distance to the nearest obstacle or wall surface) at every cell centre.
+// Static clearance (distance from the cell centre to the nearest obstacle or wall surface) on
+// a square grid over the world; cell k is (row k / n, column k % n), row 0 = lowest y.
 struct ClearanceGrid {
     int n = 0;
     double cell = 0.04, half = 1.2;
     std::vector<float> clear;
     ClearanceGrid() = default;
-    ClearanceGrid(const Map& map, double cell_) : cell(cell_), half(map.half_size) {
-        n = std::max(2, (int)std::ceil(2 * half / cell - 1e-9));
+    ClearanceGrid(const Map& map, double cell_wanted) : half(map.half_size) {
+        n = std::max(2, (int)std::lround(2 * half / cell_wanted));
         cell = 2 * half / n;
         clear.resize((size_t)n * n);
-        for (int k = 0; k < n * n; ++k)
-            clear[k] = (float)static_clearance(map, {-half + (k % n + 0.5) * cell, -half + (k / n + 0.5) * cell});
+        for (int k = 0; k < n * n; ++k) clear[k] = (float)static_clearance(map, centre(k));
     }
-    float at(Vec2 p) const {
-        int col = std::clamp((int)((p.x + half) / cell), 0, n - 1), row = std::clamp((int)((p.y + half) / cell), 0, n - 1);
-        return clear[row * n + col];
+    int index(Vec2 p) const {
+        int col = std::clamp((int)std::floor((p.x + half) / cell), 0, n - 1);
+        int row = std::clamp((int)std::floor((p.y + half) / cell), 0, n - 1);
+        return row * n + col;
     }
+    Vec2 centre(int k) const { return {-half + (k % n + 0.5) * cell, -half + (k / n + 0.5) * cell}; }
 };
-inline DistanceField wavefront(const ClearanceGrid& cg, Vec2 goal, double radius, double inflate, double band_cost = 8) {
-    DistanceField f;
-    f.n = cg.n;
-    f.cell = cg.cell;
-    f.half = cg.half;
-    f.goal = goal;
-    const int N = f.n * f.n;
-    std::vector<float> factor(N);
-    for (int k = 0; k < N; ++k)
-        factor[k] = cg.clear[k] < radius ? 1000.f : cg.clear[k] < inflate ? (float)band_cost : 1.f;
-    f.dist.assign(N, std::numeric_limits<float>::infinity());
-    f.next.assign(N, -1);
-    using Item = std::pair<float, int>;
-    std::priority_queue<Item, std::vector<Item>, std::greater<Item>> q;
-    int g = f.index(goal);
-    f.dist[g] = 0;
-    q.push({0.f, g});
-    const int dr[8] = {0, 0, 1, -1, 1, 1, -1, -1}, dc[8] = {1, -1, 0, 0, 1, -1, 1, -1};
-    while (!q.empty()) {
-        auto [d, k] = q.top();
-        q.pop();
-        if (d > f.dist[k]) continue;
-        int row = k / f.n, col = k % f.n;
-        for (int e = 0; e < 8; ++e) {
-            int r2 = row + dr[e], c2 = col + dc[e];
-            if (r2 < 0 || r2 >= f.n || c2 < 0 || c2 >= f.n) continue;
-            int k2 = r2 * f.n + c2;
-            float len = (e < 4 ? 1.f : 1.41421356f) * (float)f.cell;
-            float nd = d + len * 0.5f * (factor[k] + factor[k2]);
-            if (nd < f.dist[k2]) {
-                f.dist[k2] = nd;
-                f.next[k2] = k;
-                q.push({nd, k2});
+
+// The wavefront: steps from every cell to `goal_cell` moving one cell per step in 8
+// directions through cells whose clearance is >= `min_clear` (the goal cell always counts).
+// Breadth-first search; -1 where the goal cannot be reached.
+inline std::vector<int> wavefront(const ClearanceGrid& cg, int goal_cell, double min_clear) {
+    const int n = cg.n;
+    std::vector<int> steps((size_t)n * n, -1);
+    std::vector<int> queue{goal_cell};
+    steps[goal_cell] = 0;
+    for (size_t head = 0; head < queue.size(); ++head) {
+        int k = queue[head], row = k / n, col = k % n;
+        for (int dr = -1; dr <= 1; ++dr)
+            for (int dc = -1; dc <= 1; ++dc) {
+                int r2 = row + dr, c2 = col + dc;
+                if ((dr == 0 && dc == 0) || r2 < 0 || r2 >= n || c2 < 0 || c2 >= n) continue;
+                int k2 = r2 * n + c2;
+                if (steps[k2] >= 0 || cg.clear[k2] < min_clear) continue;
+                steps[k2] = steps[k] + 1;
+                queue.push_back(k2);
             }
-        }
     }
-    return f;
+    return steps;
 }
 
-// The guided expert: a privileged classical planner for demonstrations and a strong
-// classical row. Per agent: the preferred velocity heads for the farthest point of its
-// wavefront path (within `lookahead`) that it can see in a straight line with clearance,
-// slowing near the goal; conflicts between agents are resolved by (1) a consistent passing
-// side (an agent ahead on a collision course turns the preferred velocity to the right),
-// (2) priorities in the safety filter (a moving agent takes less of a pair's correction than
-// an agent that has arrived, a longer initial path takes less than a shorter one), and
-// (3) deadlock breaking (an agent stalled away from its goal sidesteps to its right for a
-// while). The safety filter (SPEC 3.2) then makes the actions safe.
+// The guided expert: a privileged classical planner that makes the training demonstrations
+// and a strong classical row. Every `replan_every` steps it plans all agents one after the
+// other in priority order (prioritized planning, a space-time A* per agent):
+//   - space: a grid of cell `cell` (one cell per step = 0.36 units/s along an axis), cells
+//     closer than `inflate` to an obstacle or wall excluded;
+//   - time: the agent's path is a cell per step; waiting is a move;
+//   - heuristic: the wavefront (BFS) steps to the goal around the static map, exact when no
+//     other agent is in the way;
+//   - conflicts: the planned centres of higher-priority agents reserve a disc of radius
+//     2 r + buffer at every step; each step inside a reservation costs `conflict_cost` extra
+//     steps (soft, so a plan always exists; the agent waits, detours or makes way when that
+//     is cheaper), and arriving at the goal is charged for later reservations there.
+// Priorities: agents still travelling before agents that have arrived (those step aside and
+// come back), then the longer wavefront distance at the start first, then the id. The plan
+// is tracked with the SPEC 3.2 tracker and made safe by the safety filter, in which the
+// higher-priority agent of a pair takes the smaller share (`priority_share`) of a correction.
 struct ExpertParams {
-    double cell = 0.04;          // wavefront grid cell, world units
-    double inflate = 0.14;       // paths keep this clearance from obstacles (radius + margin), world units
-    double speed = 0.38;         // cruise speed, world units/s, <= 0.4 per axis
-    double goal_gain = 2.5;      // near the goal v_pref = goal_gain * (goal - p), 1/s
-    double lookahead = 0.8;      // path length searched for a visible target, world units
-    double pass_range = 0.7;     // agents ahead within this distance trigger the passing side, world units
-    double pass_angle = 0.9;     // largest turn to the right for the passing side, radians
-    double priority_share = 0.2; // share of a pair's correction taken by the higher-priority agent, [0, 0.5]
-    int stall_steps = 8;         // steps of stalling before a sidestep
-    int sidestep_steps = 6;      // length of a sidestep, steps
+    double cell = 0.036;          // planning cell, world units (distance per step at cruise)
+    double inflate = 0.13;        // clearance kept from obstacles and walls (radius + 0.03), world units
+    double buffer = 0.08;         // planned centres of two agents stay >= 2 r + buffer apart, world units
+    double conflict_cost = 8;     // extra cost of a step inside another agent's reservation, steps
+    int hold = 3;                 // a planned position stays reserved from one step before to `hold` steps after, for lag
+    int replan_every = 5;         // steps between plans, >= 1
+    double replan_error = 0.1;    // replan early when an agent is this far from its waypoint, world units
+    int extra_horizon = 20;       // plans may run this many steps past the episode's step limit
+    int max_expansions = 200000;  // A* budget per agent and plan
+    double priority_share = 0.25; // share of a pair's correction taken by the higher-priority agent, [0, 0.5]
+    TrackerParams tracker;
     SafetyFilterParams filter;
 };
+
 class GuidedExpert : public Policy {
 public:
-    explicit GuidedExpert(const Map& map, ExpertParams p = ExpertParams{}, uint64_t seed = 0)
-        : map_(map), prm_(p), clearance_(map, p.cell), rng_(seed) {}
+    explicit GuidedExpert(const Map& map, ExpertParams p = ExpertParams{}) : prm_(p), grid_(map, p.cell) {
+        if (prm_.replan_every < 1) throw std::invalid_argument("ExpertParams.replan_every: must be >= 1");
+    }
 
     std::vector<Vec2> act(const World& world) override {
+        if (needs_plan(world)) {
+            auto t0 = std::chrono::steady_clock::now();
+            make_plan(world);
+            total_ms_ += std::chrono::duration<double, std::milli>(std::chrono::steady_clock::now() - t0).count();
+            plans_++;
+        }
         const auto& ag = world.agents();
         const int n = (int)ag.size();
-        const double r = world.config().radius;
         StepModel model(world.config());
-        std::vector<Vec2> pref(n), u(n);
-        std::vector<double> prio(n);
+        int k = world.t() - plan_t0_;
+        std::vector<Vec2> u(n);
+        std::vector<int> rank(n);
         for (int i = 0; i < n; ++i) {
-            State& st = state_for(ag[i], r);
-            pref[i] = preferred_velocity(ag[i], st, world);
-            prio[i] = world.at_goal(ag[i]) ? -1.0 : st.initial_cost;
+            int pi = plan_index(ag[i].id);
+            const std::vector<Vec2>& w = plan_.waypoints[pi];
+            int last = (int)w.size() - 1;
+            Vec2 w1 = w[std::min(k, last)];
+            Vec2 v_ref = k + 1 <= last ? (w[k + 1] - w1) / world.config().dt : Vec2{0, 0};
+            u[i] = track_waypoint(ag[i].pos, ag[i].vel, w1, v_ref, model, prm_.tracker, world.config().max_action);
+            rank[i] = rank_[pi];
         }
-        // (1) Passing side: turn right when an agent is ahead on a collision course.
-        for (int i = 0; i < n; ++i) {
-            double sp = norm(pref[i]);
-            if (sp < 1e-6) continue;
-            Vec2 dir = pref[i] / sp;
-            double turn = 0;
-            for (int j = 0; j < n; ++j) {
-                if (j == i) continue;
-                Vec2 d = ag[j].pos - ag[i].pos;
-                double along = dot(d, dir), lateral = cross(dir, d);  // lateral > 0: j on the left
-                if (along <= 0 || along > prm_.pass_range || std::fabs(lateral) > 2 * r + prm_.filter.margin + 0.05) continue;
-                if (lateral < -r) continue;  // clearly on the right already: turning right would cut in
-                turn = std::max(turn, prm_.pass_angle * (1 - along / prm_.pass_range));
-            }
-            if (turn > 0) pref[i] = (dir * std::cos(turn) - perp(dir) * std::sin(turn)) * sp;
-        }
-        // (3) Deadlock breaking.
-        for (int i = 0; i < n; ++i) {
-            State& st = states_[ag[i].id];
-            bool stalled = !world.at_goal(ag[i]) && norm(ag[i].vel) < 0.05;
-            st.stalled = stalled ? st.stalled + 1 : 0;
-            if (st.stalled >= prm_.stall_steps && st.sidestep == 0) {
-                st.sidestep = prm_.sidestep_steps;
-                double s = rng_.uniform() < 0.5 ? 1 : -1;  // random side: breaks symmetric standoffs
-                Vec2 dir = normalized(pref[i]);
-                if (norm(dir) == 0) dir = normalized(ag[i].goal - ag[i].pos);
-                st.side = perp(dir) * s;
-                st.stalled = 0;
-            }
-            if (st.sidestep > 0) {
-                st.sidestep--;
-                pref[i] = (st.side * 0.8 + normalized(pref[i]) * 0.2) * prm_.speed;
-            }
-        }
-        for (int i = 0; i < n; ++i) u[i] = clamp_box(model.force_for_velocity(ag[i].vel, pref[i]), world.config().max_action);
-        // (2) Priorities: the higher-priority agent of a pair takes the smaller share.
-        auto share = [&](int i, int j) {
-            if (prio[i] == prio[j]) return 0.5;
-            return prio[i] > prio[j] ? prm_.priority_share : 1 - prm_.priority_share;
-        };
+        auto share = [&](int i, int j) { return rank[i] < rank[j] ? prm_.priority_share : 1 - prm_.priority_share; };
         return safety_filter(world, u, prm_.filter, share);
     }
-
-    // The wavefront field for a goal (computed once per goal and cached).
-    const DistanceField& field(Vec2 goal, double radius) {
-        for (auto& f : fields_) if (f.goal == goal) return f;
-        fields_.push_back(wavefront(clearance_, goal, radius, prm_.inflate));
-        return fields_.back();
-    }
+    double plan_ms() const override { return plans_ ? total_ms_ / plans_ : 0; }
+    // The current plan: waypoints of every agent from the step it was made.
+    const Plan& plan() const { return plan_; }
 
 private:
-    struct State {
-        Vec2 goal;
-        double initial_cost = 0;
-        int stalled = 0, sidestep = 0;
-        Vec2 side;
-    };
-    Map map_;
     ExpertParams prm_;
-    ClearanceGrid clearance_;
-    Rng rng_;
-    std::deque<DistanceField> fields_;
-    std::map<int, State> states_;
+    ClearanceGrid grid_;
+    std::map<int, std::vector<int>> fields_;  // goal cell -> wavefront steps
+    std::map<int, int> initial_steps_;        // agent id -> wavefront steps from its start
+    Plan plan_;
+    std::vector<int> rank_;                   // per plan entry: 0 = highest priority
+    int plan_t0_ = 0, plans_ = 0;
+    double total_ms_ = 0;
+    // Space-time search state, reused across searches: state = t * cells + cell.
+    std::vector<uint8_t> reserved_;
+    std::vector<float> cost_;
+    std::vector<int> parent_;
+    std::vector<uint32_t> seen_;
+    std::vector<int> mark_;                   // per cell: last step it was reserved by the current agent
+    uint32_t generation_ = 0;
 
-    State& state_for(const Agent& a, double radius) {
-        auto it = states_.find(a.id);
-        if (it == states_.end() || !(it->second.goal == a.goal)) {
-            State st;
-            st.goal = a.goal;
-            st.initial_cost = field(a.goal, radius).dist[field(a.goal, radius).index(a.pos)];
-            it = states_.insert_or_assign(a.id, st).first;
-        }
+    const std::vector<int>& field(int goal_cell) {
+        auto it = fields_.find(goal_cell);
+        if (it == fields_.end()) it = fields_.emplace(goal_cell, wavefront(grid_, goal_cell, prm_.inflate)).first;
         return it->second;
     }
-    // Straight segment from a to b keeps `need` clearance (checked every half cell).
-    bool visible(Vec2 a, Vec2 b, double need) const {
-        double len = norm(b - a);
-        int steps = std::max(1, (int)std::ceil(len / (clearance_.cell * 0.5)));
-        for (int k = 1; k <= steps; ++k)
-            if (clearance_.at(a + (b - a) * ((double)k / steps)) < need) return false;
-        return true;
+    int plan_index(int id) const {
+        for (size_t i = 0; i < plan_.ids.size(); ++i) if (plan_.ids[i] == id) return (int)i;
+        return -1;
     }
-    Vec2 preferred_velocity(const Agent& a, const State& st, const World& world) {
-        const DistanceField& f = field(a.goal, world.config().radius);
-        Vec2 to_goal = a.goal - a.pos;
-        double need = std::min((double)clearance_.at(a.pos), prm_.inflate) - 1e-9;
-        Vec2 target = a.goal;
-        if (!visible(a.pos, a.goal, need) || norm(to_goal) > prm_.lookahead) {
-            // Walk the wavefront path; keep the farthest visible cell within the lookahead.
-            int k = f.index(a.pos);
-            target = f.centre(f.next[k] >= 0 ? f.next[k] : k);
-            double walked = 0;
-            for (int guard = 0; k >= 0 && guard < 4 * f.n; ++guard) {
-                int nk = f.next[k];
-                if (nk < 0) break;
-                walked += norm(f.centre(nk) - f.centre(k));
-                if (walked > prm_.lookahead) break;
-                k = nk;
-                Vec2 c = f.next[k] < 0 ? a.goal : f.centre(k);
-                if (visible(a.pos, c, need)) target = c;
+    bool needs_plan(const World& world) const {
+        if (plans_ == 0 || world.t() < plan_t0_ || world.t() - plan_t0_ >= prm_.replan_every) return true;
+        if ((int)plan_.ids.size() != world.size()) return true;
+        int k = world.t() - plan_t0_;
+        for (const Agent& a : world.agents()) {
+            int pi = plan_index(a.id);
+            if (pi < 0) return true;
+            const auto& w = plan_.waypoints[pi];
+            // Position now vs the waypoint planned for now (k steps in; the start when k = 0).
+            if (k >= 1 && norm(a.pos - w[std::min(k - 1, (int)w.size() - 1)]) > prm_.replan_error) return true;
+        }
+        return false;
+    }
+
+    void make_plan(const World& world) {
+        const auto& ag = world.agents();
+        const int n = (int)ag.size(), N = grid_.n * grid_.n;
+        const double r = world.config().radius;
+        int T = std::max(1, world.config().max_steps - world.t()) + prm_.extra_horizon;
+        reserved_.assign((size_t)(T + 1) * N, 0);
+        // Priority order.
+        std::vector<int> order(n);
+        for (int i = 0; i < n; ++i) {
+            order[i] = i;
+            if (!initial_steps_.count(ag[i].id)) {
+                int s = field(grid_.index(ag[i].goal))[grid_.index(ag[i].pos)];
+                initial_steps_[ag[i].id] = s >= 0 ? s : 1 << 20;
             }
         }
-        Vec2 d = target - a.pos;
-        double dist_goal = norm(to_goal);
-        double speed = std::min(prm_.speed, prm_.goal_gain * dist_goal);
-        return normalized(d) * speed;
+        std::sort(order.begin(), order.end(), [&](int a, int b) {
+            bool ra = world.at_goal(ag[a]), rb = world.at_goal(ag[b]);
+            if (ra != rb) return rb;
+            int sa = initial_steps_[ag[a].id], sb = initial_steps_[ag[b].id];
+            if (sa != sb) return sa > sb;
+            return ag[a].id < ag[b].id;
+        });
+        // Offsets of the reservation disc.
+        std::vector<std::pair<int, int>> disc;
+        int R = (int)std::ceil((2 * r + prm_.buffer) / grid_.cell);
+        for (int dr = -R; dr <= R; ++dr)
+            for (int dc = -R; dc <= R; ++dc)
+                if (std::hypot(dr, dc) * grid_.cell < 2 * r + prm_.buffer) disc.push_back({dr, dc});
+        plan_ = Plan{};
+        rank_.assign(n, 0);
+        plan_.ids.resize(n);
+        plan_.waypoints.resize(n);
+        for (int rank = 0; rank < n; ++rank) {
+            int i = order[rank];
+            std::vector<int> path = search(ag[i], T);
+            // Reserve the path's discs; each position from one step before to `hold` after
+            // (tracking lags the plan), marking a cell once per step.
+            std::fill(mark_.begin(), mark_.end(), -1);
+            mark_.resize(N, -1);
+            for (int t = 1; t <= T; ++t)
+                for (int ts = std::max(1, t - prm_.hold); ts <= std::min(T, t + 1); ++ts) {
+                    int c = path[std::min(ts, (int)path.size() - 1)], row = c / grid_.n, col = c % grid_.n;
+                    for (auto [dr, dc] : disc) {
+                        int r2 = row + dr, c2 = col + dc;
+                        if (r2 < 0 || r2 >= grid_.n || c2 < 0 || c2 >= grid_.n) continue;
+                        int cell = r2 * grid_.n + c2;
+                        if (mark_[cell] == t) continue;
+                        mark_[cell] = t;
+                        uint8_t& slot = reserved_[(size_t)t * N + cell];
+                        if (slot < 255) slot++;
+                    }
+                }
+            // Waypoints: cell centres, the exact goal in the goal cell.
+            int goal_cell = grid_.index(ag[i].goal);
+            std::vector<Vec2> w;
+            for (int t = 1; t <= T; ++t) {
+                int c = path[std::min(t, (int)path.size() - 1)];
+                w.push_back(c == goal_cell ? ag[i].goal : grid_.centre(c));
+            }
+            plan_.ids[i] = ag[i].id;
+            plan_.waypoints[i] = std::move(w);
+            rank_[i] = rank;
+        }
+        plan_t0_ = world.t();
+    }
+
+    // Space-time A* for one agent against the current reservations; returns cells for
+    // t = 0 .. arrival (the agent stays at the last cell afterwards).
+    std::vector<int> search(const Agent& a, int T) {
+        const int n = grid_.n, N = n * n;
+        const int start = grid_.index(a.pos), goal = grid_.index(a.goal);
+        const std::vector<int>& h_bfs = field(goal);
+        auto h = [&](int c) {
+            int cheb = std::max(std::abs(c / n - goal / n), std::abs(c % n - goal % n));
+            return (float)std::max(h_bfs[c], cheb);
+        };
+        // A start pushed into the clearance band may move through cells no worse than its own.
+        float floor_clear = std::min((float)prm_.inflate, grid_.clear[start]) - 1e-6f;
+        auto allowed = [&](int c) { return grid_.clear[c] >= floor_clear || c == goal; };
+        // Charge for staying at the goal from step t on while others pass through it.
+        std::vector<float> stay(T + 2, 0.f);
+        for (int t = T; t >= 0; --t) stay[t] = stay[t + 1] + (float)prm_.conflict_cost * reserved_[(size_t)t * N + goal];
+        size_t states = (size_t)(T + 1) * N;
+        if (cost_.size() < states) { cost_.resize(states); parent_.resize(states); seen_.assign(states, 0); }
+        if (++generation_ == 0) { std::fill(seen_.begin(), seen_.end(), 0); generation_ = 1; }
+        struct Node { float f, g; int state; };
+        auto worse = [](const Node& x, const Node& y) { return x.f != y.f ? x.f > y.f : x.g < y.g; };
+        std::priority_queue<Node, std::vector<Node>, decltype(worse)> open(worse);
+        cost_[start] = 0;
+        parent_[start] = -1;
+        seen_[start] = generation_;
+        open.push({h(start), 0, start});
+        int best_end = -1, closest = start;
+        float best_total = std::numeric_limits<float>::infinity();
+        for (int expansions = 0; !open.empty() && expansions < prm_.max_expansions; ++expansions) {
+            Node node = open.top();
+            open.pop();
+            if (node.f >= best_total) break;
+            if (node.g > cost_[node.state]) continue;
+            int t = node.state / N, c = node.state % N;
+            if (c == goal) {
+                float total = node.g + stay[t + 1];
+                if (total < best_total) { best_total = total; best_end = node.state; }
+            }
+            if (h(c) < h(closest % N) || (h(c) == h(closest % N) && t < closest / N)) closest = node.state;
+            if (t == T) continue;
+            int row = c / n, col = c % n;
+            for (int dr = -1; dr <= 1; ++dr)
+                for (int dc = -1; dc <= 1; ++dc) {
+                    int r2 = row + dr, c2 = col + dc;
+                    if (r2 < 0 || r2 >= n || c2 < 0 || c2 >= n) continue;
+                    int k2 = r2 * n + c2;
+                    if (!allowed(k2)) continue;
+                    size_t s2 = (size_t)(t + 1) * N + k2;
+                    // One step; a hair more for diagonals so straight runs win ties.
+                    float g2 = node.g + 1.f + (dr && dc ? 1e-3f : 0.f) + (float)prm_.conflict_cost * reserved_[s2];
+                    if (seen_[s2] == generation_ && cost_[s2] <= g2) continue;
+                    seen_[s2] = generation_;
+                    cost_[s2] = g2;
+                    parent_[s2] = node.state;
+                    open.push({g2 + h(k2), g2, (int)s2});
+                }
+        }
+        int end = best_end >= 0 ? best_end : closest;
+        std::vector<int> path;
+        for (int s = end; s >= 0; s = parent_[s]) path.push_back(s % N);
+        std::reverse(path.begin(), path.end());
+        return path;
     }
 };
 

@@ -70,8 +70,8 @@ std::vector<Method> methods() {
                  [](Args&, const MethodSetup& s) {
                      madbp::ExpertParams ep;
                      if (!s.filter) throw std::invalid_argument("--no-filter: the guided expert always uses its safety filter");
-                     return MethodSpec{[ep](const madbp::World& w, uint64_t seed) {
-                         return std::make_unique<madbp::GuidedExpert>(w.map(), ep, seed);
+                     return MethodSpec{[ep](const madbp::World& w, uint64_t) {
+                         return std::make_unique<madbp::GuidedExpert>(w.map(), ep);
                      }};
                  }});
 #ifdef MADBP_HAVE_NN_METHODS
