@@ -1,0 +1,1556 @@
+// madbp.hpp - neural-network core, checkpoints, and the MA-DBP model.
+// Part of madbp (Multi-Agent Diffusion Based Planner), header-only C++17. MIT licence.
+//
+// What it is
+//   A small neural-network library written by hand on Eigen (SPEC.md section 4): layers as
+//   plain structs with forward/backward, all parameters of a model in one flat buffer, Adam,
+//   gradient clipping, a weight EMA, and safetensors checkpoints (SPEC section 11) that
+//   Python's safetensors/numpy can read. The MA-DBP model (SPEC section 5) is built on it.
+//
+// Conventions (read these once)
+//   Mat = Eigen::MatrixXf, column-major float32. An activation is a (C, N) matrix: one
+//   column per position, one row per channel. B items of length T are stored with column
+//   index b*T + t (time fastest within an item); 2-D maps of H x W use b*H*W + y*W + x.
+//   forward() resizes its output and keeps in the layer what backward() needs, so each layer
+//   instance is used once per forward pass. backward() takes the same inputs as forward (minus
+//   the output), then dy, then the input gradient(s); it ADDS into the parameter gradients of
+//   the ParamStore and WRITES (overwrites) the input gradients. Outputs must not alias inputs.
+//   Parameter shapes are listed row-major, as in the checkpoint file (numpy order); the
+//   column-major Eigen matrix of an entry {r, c} is (c, r). So Linear's W (out, in) is listed
+//   {in, out}: numpy computes y = x @ W + b, like Flax's Dense kernel.
+//
+// Use
+//   #include "madbp.hpp"
+//   madbp::Rng rng(0);
+//   madbp::ParamStore ps;
+//   madbp::Linear fc1(ps, "fc1", 2, 64, rng), fc2(ps, "fc2", 64, 1, rng);
+//   madbp::Tanh act;
+//   madbp::Adam adam;                       // lr 3e-4, eps outside the square root
+//   madbp::Mat h, a, y, dy, da, dh, dx;
+//   fc1.forward(x, h); act.forward(h, a); fc2.forward(a, y);        // x is (2, N)
+//   dy = 2 * (y - target) / N;                                       // d(mean squared error)
+//   ps.zero_grad();
+//   fc2.backward(a, dy, da); act.backward(h, da, dh); fc1.backward(x, dh, dx);
+//   madbp::clip_grad_norm(ps, 1.0f);
+//   adam.update(ps);
+//   madbp::save_params("model.safetensors", ps, {{"step", "100"}});
+//
+// Threads
+//   Layers split large products and the attention loop over OpenMP threads themselves. Call
+//   madbp::set_num_threads(n) once: it sets OpenMP's thread count and turns Eigen's own GEMM
+//   threading off, because Eigen allocates packing buffers on every multi-threaded product and
+//   the steady-state forward pass is meant to allocate nothing.
+//
+// Configuration macros (define before including)
+//   MADBP_ASSERT(cond)             programmer-error check (see madbp_sim.hpp); default assert.
+//   EIGEN_STACK_ALLOCATION_LIMIT   madbp sets 1 MiB when undefined, so Eigen's single-threaded
+//                                  GEMM packs its blocks on the stack, not the heap. Include
+//                                  madbp.hpp before any Eigen header for it to take effect.
+//
+// Changelog
+//   0.1  neural-network core, safetensors checkpoints.
+
+#ifndef MADBP_HPP
+#define MADBP_HPP
+
+#ifndef EIGEN_STACK_ALLOCATION_LIMIT
+#define EIGEN_STACK_ALLOCATION_LIMIT (1 << 20)
+#endif
+
+#include "madbp_sim.hpp"
+
+#include <Eigen/Dense>
+
+#include <algorithm>
+#include <cerrno>
+#include <cmath>
+#include <cstdint>
+#include <cstdio>
+#include <cstring>
+#include <fcntl.h>
+#include <limits>
+#include <map>
+#include <memory>
+#include <numeric>
+#include <stdexcept>
+#include <string>
+#include <sys/stat.h>
+#include <unistd.h>
+#include <vector>
+#ifdef _OPENMP
+#include <omp.h>
+#endif
+
+namespace madbp {
+
+// ===== Neural-network core =====
+
+using Mat = Eigen::MatrixXf;
+using Vec = Eigen::VectorXf;
+
+// Sets the number of threads madbp's layers use and keeps Eigen's products single-threaded
+// (madbp splits them itself; Eigen's threaded GEMM allocates on every call).
+inline void set_num_threads(int n) {
+    MADBP_ASSERT(n >= 1);
+#ifdef _OPENMP
+    omp_set_num_threads(n);
+#endif
+    Eigen::setNbThreads(1);
+}
+
+namespace detail {
+
+inline int max_threads() {
+#ifdef _OPENMP
+    return omp_in_parallel() ? 1 : omp_get_max_threads();
+#else
+    return 1;
+#endif
+}
+
+// Threads worth using for `flops` of work: a parallel region costs a few microseconds, so
+// below ~1 MFLOP (about 50 us on one core) one thread is faster.
+inline int threads_for(double flops) {
+    int t = max_threads();
+    if (t <= 1 || flops < 1e6) return 1;
+    return std::min<int>(t, std::max(1, (int)(flops / 5e5)));
+}
+
+// Runs fn(i, thread) for i in [0, n) on `threads` threads; thread in [0, threads) indexes
+// per-thread scratch. One thread runs a plain loop: even a one-thread OpenMP region allocates
+// its team in libgomp.
+template <class F>
+inline void parallel_for(int n, int threads, const F& fn) {
+#ifdef _OPENMP
+    if (threads > 1) {
+#pragma omp parallel for num_threads(threads) schedule(static)
+        for (int i = 0; i < n; ++i) fn(i, omp_get_thread_num());
+        return;
+    }
+#endif
+    for (int i = 0; i < n; ++i) fn(i, 0);
+}
+
+// y = A * x, splitting the columns of x and y over threads. y must already have its size.
+template <class Lhs>
+inline void product_by_columns(const Lhs& A, const Mat& x, Mat& y) {
+    const int n = (int)x.cols();
+    const int threads = threads_for(2.0 * A.rows() * A.cols() * n);
+    if (threads <= 1 || n < 16) {
+        y.noalias() = A * x;
+        return;
+    }
+#ifdef _OPENMP
+#pragma omp parallel num_threads(threads)
+    {
+        const int t = omp_get_thread_num(), nt = omp_get_num_threads();
+        const int chunk = ((n + nt - 1) / nt + 7) / 8 * 8;  // multiples of 8 columns
+        const int c0 = std::min(n, t * chunk), c1 = std::min(n, c0 + chunk);
+        if (c1 > c0) y.middleCols(c0, c1 - c0).noalias() = A * x.middleCols(c0, c1 - c0);
+    }
+#endif
+}
+
+inline long shape_numel(const std::vector<int>& shape) {
+    long n = 1;
+    for (int d : shape) n *= d;
+    return n;
+}
+
+inline std::string shape_string(const std::vector<int>& shape) {
+    std::string s = "[";
+    for (size_t i = 0; i < shape.size(); ++i) s += (i ? ", " : "") + std::to_string(shape[i]);
+    return s + "]";
+}
+
+}  // namespace detail
+
+// How ParamStore::add initialises a tensor. Linear/Conv use uniform(1/sqrt(fan_in)) as
+// PyTorch does.
+struct Init {
+    enum Kind { Zeros, Ones, Uniform, Normal } kind = Zeros;
+    float scale = 0;  // Uniform: bound (values in [-bound, bound)); Normal: standard deviation
+    static Init zeros() { return {Zeros, 0}; }
+    static Init ones() { return {Ones, 0}; }
+    static Init uniform(float bound) { return {Uniform, bound}; }
+    static Init normal(float std) { return {Normal, std}; }
+};
+
+// value (P), grad (P): all parameters of a model in one flat buffer, entries are named views.
+struct ParamStore {
+    Vec value, grad;
+    struct Entry {
+        std::string name;
+        int offset;
+        std::vector<int> shape;  // row-major, as in the checkpoint (see Conventions)
+        bool trainable;          // false: state such as BatchNorm running statistics
+        int numel() const { return (int)detail::shape_numel(shape); }
+    };
+    std::vector<Entry> entries;
+
+    // Appends a tensor initialised now and returns its offset. Names must be unique and must
+    // not start with "optim." (reserved for optimizer state in checkpoints).
+    int add(const std::string& name, std::vector<int> shape, Init init, Rng& rng, bool trainable = true) {
+        MADBP_ASSERT(find(name) == nullptr);
+        MADBP_ASSERT(name.rfind("optim.", 0) != 0 && !name.empty());
+        for (int d : shape) MADBP_ASSERT(d >= 0);
+        const int offset = size();
+        const int n = (int)detail::shape_numel(shape);
+        value.conservativeResize(offset + n);
+        grad.conservativeResize(offset + n);
+        grad.segment(offset, n).setZero();
+        for (int i = 0; i < n; ++i) {
+            float v = 0;
+            switch (init.kind) {
+                case Init::Zeros: v = 0; break;
+                case Init::Ones: v = 1; break;
+                case Init::Uniform: v = (float)rng.uniform(-init.scale, init.scale); break;
+                case Init::Normal: v = (float)(init.scale * rng.normal()); break;
+            }
+            value[offset + i] = v;
+        }
+        entries.push_back({name, offset, std::move(shape), trainable});
+        return offset;
+    }
+    const Entry* find(const std::string& name) const {
+        for (auto& e : entries)
+            if (e.name == name) return &e;
+        return nullptr;
+    }
+    Eigen::Map<Mat> view(int offset, int rows, int cols) { return {value.data() + offset, rows, cols}; }
+    Eigen::Map<const Mat> view(int offset, int rows, int cols) const { return {value.data() + offset, rows, cols}; }
+    Eigen::Map<Mat> grad_view(int offset, int rows, int cols) { return {grad.data() + offset, rows, cols}; }
+    Eigen::Map<const Mat> grad_view(int offset, int rows, int cols) const { return {grad.data() + offset, rows, cols}; }
+    Eigen::Map<Vec> vec(int offset, int n) { return {value.data() + offset, n}; }
+    Eigen::Map<const Vec> vec(int offset, int n) const { return {value.data() + offset, n}; }
+    Eigen::Map<Vec> grad_vec(int offset, int n) { return {grad.data() + offset, n}; }
+    void zero_grad() { grad.setZero(); }
+    int size() const { return (int)value.size(); }
+};
+
+// ---------------------------------------------------------------------------------------------
+// Linear: x (in, N) -> y (out, N). W (out, in) listed {in, out}; b (out). backward(x, dy, dx).
+struct Linear {
+    ParamStore* ps = nullptr;
+    int in = 0, out = 0, w = -1, b = -1;  // b = -1: no bias
+
+    Linear() = default;
+    Linear(ParamStore& ps_, const std::string& name, int in_, int out_, Rng& rng, bool bias = true)
+        : ps(&ps_), in(in_), out(out_) {
+        const float bound = 1.0f / std::sqrt((float)in);
+        w = ps->add(name + ".weight", {in, out}, Init::uniform(bound), rng);
+        if (bias) b = ps->add(name + ".bias", {out}, Init::uniform(bound), rng);
+    }
+    void forward(const Mat& x, Mat& y) {
+        MADBP_ASSERT(x.rows() == in);
+        y.resize(out, x.cols());
+        detail::product_by_columns(ps->view(w, out, in), x, y);
+        if (b >= 0) y.colwise() += ps->vec(b, out);
+    }
+    void backward(const Mat& x, const Mat& dy, Mat& dx) {
+        MADBP_ASSERT(dy.rows() == out && dy.cols() == x.cols());
+        ps->grad_view(w, out, in).noalias() += dy * x.transpose();
+        if (b >= 0) ps->grad_vec(b, out) += dy.rowwise().sum();
+        dx.resize(in, x.cols());
+        dx.noalias() = ps->view(w, out, in).transpose() * dy;
+    }
+};
+
+// LayerNorm over rows (features) of each column: x (C, N) -> y (C, N); gain, bias (C).
+// eps 1e-5. backward(x, dy, dx).
+struct LayerNorm {
+    ParamStore* ps = nullptr;
+    int C = 0, gain = -1, bias = -1;
+    float eps = 1e-5f;
+    Eigen::RowVectorXf mean, rstd;  // (N), kept for backward
+    Vec xhat, dnorm;                // (C) scratch of one column
+
+    LayerNorm() = default;
+    LayerNorm(ParamStore& ps_, const std::string& name, int C_, Rng& rng) : ps(&ps_), C(C_) {
+        gain = ps->add(name + ".weight", {C}, Init::ones(), rng);
+        bias = ps->add(name + ".bias", {C}, Init::zeros(), rng);
+    }
+    void forward(const Mat& x, Mat& y) {
+        MADBP_ASSERT(x.rows() == C);
+        const int N = (int)x.cols();
+        mean.resize(N);
+        rstd.resize(N);
+        y.resize(C, N);
+        auto g = ps->vec(gain, C);
+        auto b = ps->vec(bias, C);
+        for (int j = 0; j < N; ++j) {
+            const float mu = x.col(j).mean();
+            const float var = (x.col(j).array() - mu).square().mean();
+            mean[j] = mu;
+            rstd[j] = 1.0f / std::sqrt(var + eps);
+            y.col(j) = ((x.col(j).array() - mu) * rstd[j]) * g.array() + b.array();
+        }
+    }
+    void backward(const Mat& x, const Mat& dy, Mat& dx) {
+        const int N = (int)x.cols();
+        auto g = ps->vec(gain, C);
+        auto dg = ps->grad_vec(gain, C);
+        auto db = ps->grad_vec(bias, C);
+        dx.resize(C, N);
+        for (int j = 0; j < N; ++j) {
+            xhat = (x.col(j).array() - mean[j]) * rstd[j];
+            dnorm = g.cwiseProduct(dy.col(j));
+            dg += dy.col(j).cwiseProduct(xhat);
+            db += dy.col(j);
+            const float mean_dnorm = dnorm.mean(), mean_dnorm_xhat = dnorm.dot(xhat) / C;
+            dx.col(j) = rstd[j] * (dnorm.array() - mean_dnorm - xhat.array() * mean_dnorm_xhat);
+        }
+    }
+};
+
+// ---------------------------------------------------------------------------------------------
+// Multi-head attention: q_in (D, Lq*B), kv_in (D, Lk*B) -> y (D, Lq*B). Wq, Wk, Wv, Wo (D, D)
+// listed {D, D}, biases (D). key_mask: Lk*B of 0/1 (1 = attend) or nullptr. An item whose
+// keys are all masked outputs 0 and passes no gradient. backward takes forward's arguments,
+// then dy, then writes dq_in and dkv_in (self-attention: pass x twice, add the two).
+struct MultiHeadAttention {
+    ParamStore* ps = nullptr;
+    int D = 0, heads = 0, wq = -1, bq = -1, wk = -1, bk = -1, wv = -1, bv = -1, wo = -1, bo = -1;
+    // Kept for backward: projections, attention weights per (item, head), context.
+    Mat Q, K, V;     // (D, Lq*B), (D, Lk*B), (D, Lk*B)
+    Mat P;           // (Lk, Lq*B*heads): block (b*heads + h) holds softmax weights, keys x queries
+    Mat ctx;         // (D, Lq*B) attention output before Wo
+    Vec mask;        // (Lk*B) copy of key_mask (ones when nullptr)
+    Eigen::Matrix<unsigned char, Eigen::Dynamic, 1> dead;  // (B) 1 when every key is masked
+    Mat dctx, dQ, dK, dV, dy_live;  // backward scratch
+    std::vector<Mat> dS;            // (Lk, Lq) per thread: score gradients of one (item, head)
+
+    MultiHeadAttention() = default;
+    MultiHeadAttention(ParamStore& ps_, const std::string& name, int dim, int heads_, Rng& rng)
+        : ps(&ps_), D(dim), heads(heads_) {
+        MADBP_ASSERT(heads > 0 && dim % heads == 0);
+        const float bound = 1.0f / std::sqrt((float)dim);
+        wq = ps->add(name + ".q.weight", {D, D}, Init::uniform(bound), rng);
+        bq = ps->add(name + ".q.bias", {D}, Init::zeros(), rng);
+        wk = ps->add(name + ".k.weight", {D, D}, Init::uniform(bound), rng);
+        bk = ps->add(name + ".k.bias", {D}, Init::zeros(), rng);
+        wv = ps->add(name + ".v.weight", {D, D}, Init::uniform(bound), rng);
+        bv = ps->add(name + ".v.bias", {D}, Init::zeros(), rng);
+        wo = ps->add(name + ".o.weight", {D, D}, Init::uniform(bound), rng);
+        bo = ps->add(name + ".o.bias", {D}, Init::zeros(), rng);
+    }
+
+    void forward(const Mat& q_in, int Lq, const Mat& kv_in, int Lk, int B, const float* key_mask, Mat& y) {
+        MADBP_ASSERT(q_in.rows() == D && kv_in.rows() == D);
+        MADBP_ASSERT(q_in.cols() == (long)Lq * B && kv_in.cols() == (long)Lk * B);
+        project(wq, bq, q_in, Q);
+        project(wk, bk, kv_in, K);
+        project(wv, bv, kv_in, V);
+        mask.resize(Lk * B);
+        if (key_mask) mask = Eigen::Map<const Vec>(key_mask, Lk * B);
+        else mask.setOnes();
+        dead.resize(B);
+        for (int b = 0; b < B; ++b) dead[b] = (mask.segment(b * Lk, Lk).array() != 0).any() ? 0 : 1;
+        P.resize(Lk, (long)Lq * B * heads);
+        ctx.resize(D, (long)Lq * B);
+        const int dh = D / heads;
+        const float scale = 1.0f / std::sqrt((float)dh);
+        const int blocks = B * heads;
+        const int threads = detail::threads_for(4.0 * blocks * Lq * Lk * dh);
+        detail::parallel_for(blocks, threads, [&](int bh, int) {
+            const int b = bh / heads, h = bh % heads;
+            auto Pb = P.middleCols((long)bh * Lq, Lq);
+            auto out = ctx.block(h * dh, (long)b * Lq, dh, Lq);
+            if (dead[b]) {
+                Pb.setZero();
+                out.setZero();
+                return;
+            }
+            Pb.noalias() = K.block(h * dh, (long)b * Lk, dh, Lk).transpose() * Q.block(h * dh, (long)b * Lq, dh, Lq);
+            const float* m = mask.data() + (long)b * Lk;
+            for (int q = 0; q < Lq; ++q) {  // softmax over the unmasked keys of each query
+                float* s = Pb.col(q).data();
+                float mx = -std::numeric_limits<float>::infinity();
+                for (int k = 0; k < Lk; ++k)
+                    if (m[k] != 0) mx = std::max(mx, s[k] * scale);
+                float sum = 0;
+                for (int k = 0; k < Lk; ++k) {
+                    s[k] = m[k] != 0 ? std::exp(s[k] * scale - mx) : 0.0f;
+                    sum += s[k];
+                }
+                const float inv = 1.0f / sum;
+                for (int k = 0; k < Lk; ++k) s[k] *= inv;
+            }
+            out.noalias() = V.block(h * dh, (long)b * Lk, dh, Lk) * Pb;
+        });
+        y.resize(D, (long)Lq * B);
+        detail::product_by_columns(ps->view(wo, D, D), ctx, y);
+        y.colwise() += ps->vec(bo, D);
+        for (int b = 0; b < B; ++b)
+            if (dead[b]) y.middleCols((long)b * Lq, Lq).setZero();
+    }
+
+    void backward(const Mat& q_in, int Lq, const Mat& kv_in, int Lk, int B, const float* key_mask, const Mat& dy,
+                  Mat& dq_in, Mat& dkv_in) {
+        MADBP_ASSERT(dy.rows() == D && dy.cols() == (long)Lq * B);
+        dy_live = dy;  // dead items pass no gradient (their output is a constant 0)
+        for (int b = 0; b < B; ++b)
+            if (dead[b]) dy_live.middleCols((long)b * Lq, Lq).setZero();
+        ps->grad_view(wo, D, D).noalias() += dy_live * ctx.transpose();
+        ps->grad_vec(bo, D) += dy_live.rowwise().sum();
+        dctx.resize(D, (long)Lq * B);
+        dctx.noalias() = ps->view(wo, D, D).transpose() * dy_live;
+        dQ.resize(D, (long)Lq * B);
+        dK.resize(D, (long)Lk * B);
+        dV.resize(D, (long)Lk * B);
+        const int dh = D / heads;
+        const float scale = 1.0f / std::sqrt((float)dh);
+        const int blocks = B * heads;
+        const int threads = detail::threads_for(8.0 * blocks * Lq * Lk * dh);
+        dS.resize(std::max(threads, (int)dS.size()));
+        for (Mat& m : dS) m.resize(Lk, Lq);
+        detail::parallel_for(blocks, threads, [&](int bh, int thread) {
+            Mat& dS_t = dS[thread];
+            const int b = bh / heads, h = bh % heads;
+            auto Pb = P.middleCols((long)bh * Lq, Lq);
+            auto dout = dctx.block(h * dh, (long)b * Lq, dh, Lq);
+            auto Qb = Q.block(h * dh, (long)b * Lq, dh, Lq);
+            auto Kb = K.block(h * dh, (long)b * Lk, dh, Lk);
+            auto Vb = V.block(h * dh, (long)b * Lk, dh, Lk);
+            // out = V P  =>  dV = dout P^T, dP = V^T dout.
+            dV.block(h * dh, (long)b * Lk, dh, Lk).noalias() = dout * Pb.transpose();
+            dS_t.noalias() = Vb.transpose() * dout;
+            // Softmax backward per query column: dS = P .* (dP - sum(P .* dP)).
+            for (int q = 0; q < Lq; ++q) {
+                const float dot = Pb.col(q).dot(dS_t.col(q));
+                dS_t.col(q) = Pb.col(q).cwiseProduct((dS_t.col(q).array() - dot).matrix()) * scale;
+            }
+            // S = K^T Q * scale  =>  dQ = K dS, dK = Q dS^T (scale folded into dS).
+            dQ.block(h * dh, (long)b * Lq, dh, Lq).noalias() = Kb * dS_t;
+            dK.block(h * dh, (long)b * Lk, dh, Lk).noalias() = Qb * dS_t.transpose();
+        });
+        project_backward(wq, bq, q_in, dQ, dq_in, false);
+        project_backward(wk, bk, kv_in, dK, dkv_in, false);
+        project_backward(wv, bv, kv_in, dV, dkv_in, true);
+    }
+
+    // out = W x + b for one of the four projections.
+    void project(int w, int b, const Mat& x, Mat& out) {
+        out.resize(D, x.cols());
+        detail::product_by_columns(ps->view(w, D, D), x, out);
+        out.colwise() += ps->vec(b, D);
+    }
+    void project_backward(int w, int b, const Mat& x, const Mat& dout, Mat& dx, bool accumulate) {
+        ps->grad_view(w, D, D).noalias() += dout * x.transpose();
+        ps->grad_vec(b, D) += dout.rowwise().sum();
+        if (accumulate) {
+            dx.noalias() += ps->view(w, D, D).transpose() * dout;
+        } else {
+            dx.resize(D, x.cols());
+            dx.noalias() = ps->view(w, D, D).transpose() * dout;
+        }
+    }
+};
+
+// ---------------------------------------------------------------------------------------------
+// im2col for 1-D convolution with same padding inside each item: x (cin, T*B) ->
+// cols (k*cin, T*B), row j*cin + c holds x(c, t + j - pad) of the same item, 0 outside it.
+namespace detail {
+inline void im2col_1d(const Mat& x, int T, int k, Mat& cols) {
+    const int cin = (int)x.rows(), B = (int)(x.cols() / T), pad = k / 2;
+    cols.resize((long)k * cin, x.cols());
+    for (int b = 0; b < B; ++b)
+        for (int j = 0; j < k; ++j) {
+            const int s = j - pad, t0 = std::max(0, -s), t1 = std::min(T, T - s);
+            auto dst = cols.block((long)j * cin, (long)b * T, cin, T);
+            dst.leftCols(t0).setZero();
+            dst.rightCols(T - t1).setZero();
+            if (t1 > t0) dst.middleCols(t0, t1 - t0) = x.block(0, (long)b * T + t0 + s, cin, t1 - t0);
+        }
+}
+// The adjoint of im2col_1d: dx (cin, T*B) = sum over taps of the shifted rows of dcols.
+inline void col2im_1d(const Mat& dcols, int T, int k, int cin, Mat& dx) {
+    const int B = (int)(dcols.cols() / T), pad = k / 2;
+    dx.setZero(cin, dcols.cols());
+    for (int b = 0; b < B; ++b)
+        for (int j = 0; j < k; ++j) {
+            const int s = j - pad, t0 = std::max(0, -s), t1 = std::min(T, T - s);
+            if (t1 > t0)
+                dx.block(0, (long)b * T + t0 + s, cin, t1 - t0) += dcols.block((long)j * cin, (long)b * T + t0, cin, t1 - t0);
+        }
+}
+}  // namespace detail
+
+// Conv1d, stride 1, same padding (k odd), zero padding per item: x (cin, T*B) -> y (cout, T*B).
+// W (cout, k*cin) listed {k, cin, cout} (Flax's kernel layout); b (cout). im2col + one GEMM.
+// backward(x, T, dy, dx).
+struct Conv1d {
+    ParamStore* ps = nullptr;
+    int cin = 0, cout = 0, k = 0, w = -1, b = -1;
+    Mat cols, dcols;  // (k*cin, T*B): im2col of the last input, and its gradient
+
+    Conv1d() = default;
+    Conv1d(ParamStore& ps_, const std::string& name, int cin_, int cout_, int k_, Rng& rng)
+        : ps(&ps_), cin(cin_), cout(cout_), k(k_) {
+        MADBP_ASSERT(k % 2 == 1);
+        const float bound = 1.0f / std::sqrt((float)(cin * k));
+        w = ps->add(name + ".weight", {k, cin, cout}, Init::uniform(bound), rng);
+        b = ps->add(name + ".bias", {cout}, Init::uniform(bound), rng);
+    }
+    void forward(const Mat& x, int T, Mat& y) {
+        MADBP_ASSERT(x.rows() == cin && T > 0 && x.cols() % T == 0);
+        detail::im2col_1d(x, T, k, cols);
+        y.resize(cout, x.cols());
+        detail::product_by_columns(ps->view(w, cout, k * cin), cols, y);
+        y.colwise() += ps->vec(b, cout);
+    }
+    void backward(const Mat& x, int T, const Mat& dy, Mat& dx) {
+        ps->grad_view(w, cout, k * cin).noalias() += dy * cols.transpose();
+        ps->grad_vec(b, cout) += dy.rowwise().sum();
+        dcols.resize((long)k * cin, dy.cols());
+        dcols.noalias() = ps->view(w, cout, k * cin).transpose() * dy;
+        detail::col2im_1d(dcols, T, k, cin, dx);
+    }
+};
+
+// ConvTranspose1d, k 4, stride 2, pad 1 (as PyTorch's): x (cin, T*B) -> y (cout, 2T*B), the
+// learned alternative to Upsample1d. Input t feeds outputs 2t - 1 + j, j = 0..3, within its
+// item. W (4*cout, cin) listed {cin, 4, cout}; b (cout). backward(x, T, dy, dx).
+struct ConvTranspose1d {
+    static constexpr int k = 4;
+    ParamStore* ps = nullptr;
+    int cin = 0, cout = 0, w = -1, b = -1;
+    Mat cols, dcols;  // (4*cout, T*B): W x before the overlap-add, and its gradient
+
+    ConvTranspose1d() = default;
+    ConvTranspose1d(ParamStore& ps_, const std::string& name, int cin_, int cout_, Rng& rng)
+        : ps(&ps_), cin(cin_), cout(cout_) {
+        const float bound = 1.0f / std::sqrt((float)(cout * k));  // PyTorch's fan_in for this layer
+        w = ps->add(name + ".weight", {cin, k, cout}, Init::uniform(bound), rng);
+        b = ps->add(name + ".bias", {cout}, Init::uniform(bound), rng);
+    }
+    void forward(const Mat& x, int T, Mat& y) {
+        MADBP_ASSERT(x.rows() == cin && T > 0 && x.cols() % T == 0);
+        const int B = (int)(x.cols() / T);
+        cols.resize((long)k * cout, x.cols());
+        detail::product_by_columns(ps->view(w, k * cout, cin), x, cols);
+        y.resize(cout, x.cols() * 2);
+        y.colwise() = ps->vec(b, cout);
+        for (int bi = 0; bi < B; ++bi)
+            for (int t = 0; t < T; ++t)
+                for (int j = 0; j < k; ++j) {
+                    const int to = 2 * t - 1 + j;
+                    if (to >= 0 && to < 2 * T) y.col((long)bi * 2 * T + to) += cols.col((long)bi * T + t).segment(j * cout, cout);
+                }
+    }
+    void backward(const Mat& x, int T, const Mat& dy, Mat& dx) {
+        const int B = (int)(x.cols() / T);
+        ps->grad_vec(b, cout) += dy.rowwise().sum();
+        dcols.resize((long)k * cout, x.cols());
+        for (int bi = 0; bi < B; ++bi)
+            for (int t = 0; t < T; ++t)
+                for (int j = 0; j < k; ++j) {
+                    const int to = 2 * t - 1 + j;
+                    auto d = dcols.col((long)bi * T + t).segment(j * cout, cout);
+                    if (to >= 0 && to < 2 * T) d = dy.col((long)bi * 2 * T + to);
+                    else d.setZero();
+                }
+        ps->grad_view(w, k * cout, cin).noalias() += dcols * x.transpose();
+        dx.resize(cin, x.cols());
+        dx.noalias() = ps->view(w, k * cout, cin).transpose() * dcols;
+    }
+};
+
+// BatchNorm1d over columns, per channel: x (C, N) -> y (C, N); gain, bias (C) trainable;
+// running_mean, running_var (C) non-trainable (momentum 0.1, eps 1e-5, unbiased running var
+// as PyTorch). column_mask: N of 0/1 or nullptr. In training mode the statistics count only
+// columns whose mask is 1; every column is normalised with them, and only masked-in columns
+// receive gradient through the statistics (the exact gradient of this forward). With no
+// masked-in column the running statistics are used and left alone. Eval mode uses the running
+// statistics. backward(x, column_mask, dy, dx).
+struct BatchNorm1d {
+    ParamStore* ps = nullptr;
+    int C = 0, gain = -1, bias = -1, running_mean = -1, running_var = -1;
+    bool training = true;
+    float momentum = 0.1f, eps = 1e-5f;
+    Vec mean, rstd, dxhat_sum, dxhat_xhat_sum;  // (C)
+    Mat xhat;                                   // (C, N) normalised input, kept for backward
+    bool used_batch_stats = false;
+    float count = 0;  // masked-in columns of the last training forward
+
+    BatchNorm1d() = default;
+    BatchNorm1d(ParamStore& ps_, const std::string& name, int C_, Rng& rng) : ps(&ps_), C(C_) {
+        gain = ps->add(name + ".weight", {C}, Init::ones(), rng);
+        bias = ps->add(name + ".bias", {C}, Init::zeros(), rng);
+        running_mean = ps->add(name + ".running_mean", {C}, Init::zeros(), rng, false);
+        running_var = ps->add(name + ".running_var", {C}, Init::ones(), rng, false);
+    }
+    static bool on(const float* column_mask, int j) { return !column_mask || column_mask[j] != 0; }
+
+    void forward(const Mat& x, const float* column_mask, Mat& y) {
+        MADBP_ASSERT(x.rows() == C);
+        const int N = (int)x.cols();
+        mean.resize(C);
+        rstd.resize(C);
+        count = 0;
+        if (training)
+            for (int j = 0; j < N; ++j) count += on(column_mask, j) ? 1.0f : 0.0f;
+        used_batch_stats = training && count > 0;
+        auto rm = ps->vec(running_mean, C);
+        auto rv = ps->vec(running_var, C);
+        if (used_batch_stats) {
+            mean.setZero();
+            for (int j = 0; j < N; ++j)
+                if (on(column_mask, j)) mean += x.col(j);
+            mean /= count;
+            rstd.setZero();  // the biased variance first
+            for (int j = 0; j < N; ++j)
+                if (on(column_mask, j)) rstd.array() += (x.col(j) - mean).array().square();
+            rstd /= count;
+            const float unbias = count > 1 ? count / (count - 1) : 1.0f;
+            rm = (1 - momentum) * rm + momentum * mean;
+            rv = (1 - momentum) * rv + (momentum * unbias) * rstd;
+            rstd = (rstd.array() + eps).rsqrt();
+        } else {
+            mean = rm;
+            rstd = (rv.array() + eps).rsqrt();
+        }
+        xhat.resize(C, N);
+        xhat = (x.colwise() - mean).array().colwise() * rstd.array();
+        y.resize(C, N);
+        y = (xhat.array().colwise() * ps->vec(gain, C).array()).colwise() + ps->vec(bias, C).array();
+    }
+    void backward(const Mat& x, const float* column_mask, const Mat& dy, Mat& dx) {
+        const int N = (int)x.cols();
+        auto g = ps->vec(gain, C);
+        ps->grad_vec(gain, C) += dy.cwiseProduct(xhat).rowwise().sum();
+        ps->grad_vec(bias, C) += dy.rowwise().sum();
+        dx.resize(C, N);
+        // dxhat = dy * gain; dx = rstd * (dxhat - m_j/n * (sum dxhat + xhat * sum dxhat*xhat)).
+        dx = dy.array().colwise() * (g.array() * rstd.array());  // rstd * dxhat
+        if (!used_batch_stats) return;
+        // Both sums run over every column: masked-out columns are normalised with the batch
+        // statistics too. Pre-scaled by rstd / n.
+        dxhat_sum = dy.rowwise().sum().cwiseProduct(g).cwiseProduct(rstd) / count;
+        dxhat_xhat_sum = dy.cwiseProduct(xhat).rowwise().sum().cwiseProduct(g).cwiseProduct(rstd) / count;
+        for (int j = 0; j < N; ++j)
+            if (on(column_mask, j)) dx.col(j) -= dxhat_sum + xhat.col(j).cwiseProduct(dxhat_xhat_sum);
+    }
+};
+
+// MaxPool1d, kernel 2, stride 2 over time per item (T even): x (C, T*B) -> y (C, T/2*B).
+// Ties send the gradient to the first element. backward(x, T, dy, dx).
+struct MaxPool1d {
+    Eigen::Matrix<unsigned char, Eigen::Dynamic, Eigen::Dynamic> second;  // (C, T/2*B) 1: max at 2t+1
+
+    void forward(const Mat& x, int T, Mat& y) {
+        MADBP_ASSERT(T % 2 == 0 && x.cols() % T == 0);
+        const long half = x.cols() / 2;
+        y.resize(x.rows(), half);
+        second.resize(x.rows(), half);
+        for (long o = 0; o < half; ++o)  // T even, so pairs (2o, 2o+1) never straddle items
+            for (long c = 0; c < x.rows(); ++c) {
+                const float a = x(c, 2 * o), b = x(c, 2 * o + 1);
+                second(c, o) = b > a;
+                y(c, o) = b > a ? b : a;
+            }
+    }
+    void backward(const Mat& x, int T, const Mat& dy, Mat& dx) {
+        dx.resize(x.rows(), x.cols());
+        for (long o = 0; o < dy.cols(); ++o)
+            for (long c = 0; c < x.rows(); ++c) {
+                dx(c, 2 * o) = second(c, o) ? 0.0f : dy(c, o);
+                dx(c, 2 * o + 1) = second(c, o) ? dy(c, o) : 0.0f;
+            }
+    }
+};
+
+// Upsample1d, nearest x2 over time: x (C, T*B) -> y (C, 2T*B); y(2t) = y(2t+1) = x(t).
+// backward(x, dy, dx).
+struct Upsample1d {
+    void forward(const Mat& x, Mat& y) {
+        y.resize(x.rows(), x.cols() * 2);
+        for (long t = 0; t < x.cols(); ++t) y.col(2 * t) = y.col(2 * t + 1) = x.col(t);
+    }
+    void backward(const Mat& x, const Mat& dy, Mat& dx) {
+        dx.resize(x.rows(), x.cols());
+        for (long t = 0; t < x.cols(); ++t) dx.col(t) = dy.col(2 * t) + dy.col(2 * t + 1);
+    }
+};
+
+// Conv2d with stride and zero padding: x (cin, H*W*B), column b*H*W + y*W + x ->
+// y (cout, H'*W'*B), H' = (H + 2 pad - k) / stride + 1. W (cout, k*k*cin) listed
+// {k, k, cin, cout} (HWIO); b (cout). im2col + one GEMM. backward(x, H, W, dy, dx).
+struct Conv2d {
+    ParamStore* ps = nullptr;
+    int cin = 0, cout = 0, k = 0, stride = 1, pad = 0, w = -1, b = -1;
+    int H = 0, W = 0, Ho = 0, Wo = 0;  // sizes of the last forward
+    Mat cols, dcols;                   // (k*k*cin, Ho*Wo*B)
+
+    Conv2d() = default;
+    Conv2d(ParamStore& ps_, const std::string& name, int cin_, int cout_, int k_, int stride_, int pad_, Rng& rng)
+        : ps(&ps_), cin(cin_), cout(cout_), k(k_), stride(stride_), pad(pad_) {
+        MADBP_ASSERT(k > 0 && stride > 0 && pad >= 0);
+        const float bound = 1.0f / std::sqrt((float)(cin * k * k));
+        w = ps->add(name + ".weight", {k, k, cin, cout}, Init::uniform(bound), rng);
+        b = ps->add(name + ".bias", {cout}, Init::uniform(bound), rng);
+    }
+    int out_size(int n) const { return (n + 2 * pad - k) / stride + 1; }
+
+    void forward(const Mat& x, int H_, int W_, Mat& y) {
+        H = H_, W = W_, Ho = out_size(H), Wo = out_size(W);
+        MADBP_ASSERT(x.rows() == cin && x.cols() % ((long)H * W) == 0 && Ho > 0 && Wo > 0);
+        const long B = x.cols() / ((long)H * W);
+        cols.resize((long)k * k * cin, Ho * Wo * B);
+        for (long bi = 0; bi < B; ++bi)
+            for (int oy = 0; oy < Ho; ++oy)
+                for (int ox = 0; ox < Wo; ++ox) {
+                    auto col = cols.col(bi * Ho * Wo + oy * Wo + ox);
+                    for (int ky = 0; ky < k; ++ky)
+                        for (int kx = 0; kx < k; ++kx) {
+                            const int iy = oy * stride - pad + ky, ix = ox * stride - pad + kx;
+                            auto dst = col.segment((ky * k + kx) * cin, cin);
+                            if (iy < 0 || iy >= H || ix < 0 || ix >= W) dst.setZero();
+                            else dst = x.col(bi * H * W + iy * W + ix);
+                        }
+                }
+        y.resize(cout, cols.cols());
+        detail::product_by_columns(ps->view(w, cout, k * k * cin), cols, y);
+        y.colwise() += ps->vec(b, cout);
+    }
+    void backward(const Mat& x, int H_, int W_, const Mat& dy, Mat& dx) {
+        MADBP_ASSERT(H_ == H && W_ == W);
+        const long B = x.cols() / ((long)H * W);
+        ps->grad_view(w, cout, k * k * cin).noalias() += dy * cols.transpose();
+        ps->grad_vec(b, cout) += dy.rowwise().sum();
+        dcols.resize(cols.rows(), cols.cols());
+        dcols.noalias() = ps->view(w, cout, k * k * cin).transpose() * dy;
+        dx.setZero(cin, x.cols());
+        for (long bi = 0; bi < B; ++bi)
+            for (int oy = 0; oy < Ho; ++oy)
+                for (int ox = 0; ox < Wo; ++ox) {
+                    auto col = dcols.col(bi * Ho * Wo + oy * Wo + ox);
+                    for (int ky = 0; ky < k; ++ky)
+                        for (int kx = 0; kx < k; ++kx) {
+                            const int iy = oy * stride - pad + ky, ix = ox * stride - pad + kx;
+                            if (iy >= 0 && iy < H && ix >= 0 && ix < W)
+                                dx.col(bi * H * W + iy * W + ix) += col.segment((ky * k + kx) * cin, cin);
+                        }
+                }
+    }
+};
+
+// ---------------------------------------------------------------------------------------------
+// Element-wise activations: x (C, N) -> y (C, N). backward(x, dy, dx).
+struct ReLU {
+    void forward(const Mat& x, Mat& y) { y = x.cwiseMax(0.0f); }
+    void backward(const Mat& x, const Mat& dy, Mat& dx) { dx = (x.array() > 0).select(dy, 0.0f); }
+};
+
+namespace detail {
+inline float sigmoid(float x) { return 1.0f / (1.0f + std::exp(-x)); }
+inline float softplus(float x) { return x > 20.0f ? x : std::log1p(std::exp(x)); }
+}  // namespace detail
+
+// SiLU (swish): y = x * sigmoid(x).
+struct SiLU {
+    void forward(const Mat& x, Mat& y) {
+        y = x.unaryExpr([](float v) { return v * detail::sigmoid(v); });
+    }
+    void backward(const Mat& x, const Mat& dy, Mat& dx) {
+        dx = x.binaryExpr(dy, [](float v, float d) {
+            const float s = detail::sigmoid(v);
+            return d * s * (1.0f + v * (1.0f - s));
+        });
+    }
+};
+
+// Mish: y = x * tanh(softplus(x)) (Diffuser's U-Net activation).
+struct Mish {
+    void forward(const Mat& x, Mat& y) {
+        y = x.unaryExpr([](float v) { return v * std::tanh(detail::softplus(v)); });
+    }
+    void backward(const Mat& x, const Mat& dy, Mat& dx) {
+        dx = x.binaryExpr(dy, [](float v, float d) {
+            const float t = std::tanh(detail::softplus(v));
+            return d * (t + v * (1.0f - t * t) * detail::sigmoid(v));
+        });
+    }
+};
+
+struct Tanh {
+    void forward(const Mat& x, Mat& y) { y = x.array().tanh(); }
+    void backward(const Mat& x, const Mat& dy, Mat& dx) {
+        dx = x.binaryExpr(dy, [](float v, float d) {
+            const float t = std::tanh(v);
+            return d * (1.0f - t * t);
+        });
+    }
+};
+
+// Embedding: ids (N) in [0, count) -> y (dim, N). Table (dim, count) listed {count, dim},
+// N(0, 1) initialised as PyTorch. An id out of range throws std::invalid_argument.
+// backward(ids, N, dy) adds into the table rows used.
+struct Embedding {
+    ParamStore* ps = nullptr;
+    int count = 0, dim = 0, table = -1;
+
+    Embedding() = default;
+    Embedding(ParamStore& ps_, const std::string& name, int count_, int dim_, Rng& rng)
+        : ps(&ps_), count(count_), dim(dim_) {
+        table = ps->add(name + ".weight", {count, dim}, Init::normal(1.0f), rng);
+    }
+    void check(const int* ids, int N) const {
+        for (int n = 0; n < N; ++n)
+            if (ids[n] < 0 || ids[n] >= count)
+                throw std::invalid_argument("embedding id: " + std::to_string(ids[n]) + " at position " +
+                                            std::to_string(n) + " is outside [0, " + std::to_string(count) + ")");
+    }
+    void forward(const int* ids, int N, Mat& y) {
+        check(ids, N);
+        auto tab = ps->view(table, dim, count);
+        y.resize(dim, N);
+        for (int n = 0; n < N; ++n) y.col(n) = tab.col(ids[n]);
+    }
+    void backward(const int* ids, int N, const Mat& dy) {
+        check(ids, N);
+        auto gtab = ps->grad_view(table, dim, count);
+        for (int n = 0; n < N; ++n) gtab.col(ids[n]) += dy.col(n);
+    }
+};
+
+// Sinusoidal embedding of scalars (the diffusion step) as DDPM/Diffuser: t (N) -> y (dim, N),
+// rows [0, dim/2) sin(t f_i), rows [dim/2, dim) cos(t f_i), f_i = exp(-ln(10000) i / (dim/2 - 1)).
+// dim even, >= 4.
+inline double sinusoidal_frequency(int i, int dim) { return std::exp(-std::log(10000.0) * i / (dim / 2 - 1)); }
+
+inline void sinusoidal_embedding(const float* t, int N, int dim, Mat& y) {
+    MADBP_ASSERT(dim % 2 == 0 && dim >= 4);
+    const int half = dim / 2;
+    y.resize(dim, N);
+    for (int n = 0; n < N; ++n)
+        for (int i = 0; i < half; ++i) {
+            const double arg = t[n] * sinusoidal_frequency(i, dim);
+            y(i, n) = (float)std::sin(arg);
+            y(half + i, n) = (float)std::cos(arg);
+        }
+}
+// Writes dt[n] = sum_i dy(i, n) * d y(i, n) / d t[n].
+inline void sinusoidal_embedding_backward(const float* t, int N, int dim, const Mat& dy, float* dt) {
+    const int half = dim / 2;
+    for (int n = 0; n < N; ++n) {
+        double acc = 0;
+        for (int i = 0; i < half; ++i) {
+            const double f = sinusoidal_frequency(i, dim), arg = t[n] * f;
+            acc += dy(i, n) * f * std::cos(arg) - dy(half + i, n) * f * std::sin(arg);
+        }
+        dt[n] = (float)acc;
+    }
+}
+
+// FiLM: x (C, T*B), gamma, beta (C, B) -> y (C, T*B) = x * (1 + gamma) + beta, per item.
+inline void film_forward(const Mat& x, int T, const Mat& gamma, const Mat& beta, Mat& y) {
+    const long B = gamma.cols();
+    MADBP_ASSERT(x.cols() == T * B && gamma.rows() == x.rows() && beta.rows() == x.rows() && beta.cols() == B);
+    y.resize(x.rows(), x.cols());
+    for (long b = 0; b < B; ++b) {  // as x + x * gamma + beta: Eigen broadcasts plain columns without a temporary
+        auto yb = y.middleCols(b * T, T).array();
+        yb = (x.middleCols(b * T, T).array().colwise() * gamma.col(b).array()).colwise() + beta.col(b).array();
+        yb += x.middleCols(b * T, T).array();
+    }
+}
+// Writes dx (C, T*B), dgamma and dbeta (C, B).
+inline void film_backward(const Mat& x, int T, const Mat& gamma, const Mat& dy, Mat& dx, Mat& dgamma, Mat& dbeta) {
+    const long B = gamma.cols();
+    dx.resize(x.rows(), x.cols());
+    dgamma.resize(gamma.rows(), B);
+    dbeta.resize(gamma.rows(), B);
+    for (long b = 0; b < B; ++b) {
+        dx.middleCols(b * T, T) = dy.middleCols(b * T, T).array().colwise() * gamma.col(b).array();
+        dx.middleCols(b * T, T) += dy.middleCols(b * T, T);
+        dgamma.col(b) = dy.middleCols(b * T, T).cwiseProduct(x.middleCols(b * T, T)).rowwise().sum();
+        dbeta.col(b) = dy.middleCols(b * T, T).rowwise().sum();
+    }
+}
+
+// ---------------------------------------------------------------------------------------------
+// Optimisation. Adam with bias correction and eps outside the square root; weight_decay is
+// decoupled (AdamW: p -= lr * wd * p). Skips non-trainable entries. m and v (P) are the
+// state to checkpoint with `step` (see append_adam / read_adam).
+struct Adam {
+    float lr = 3e-4f, beta1 = 0.9f, beta2 = 0.999f, eps = 1e-8f, weight_decay = 0;
+    long step = 0;
+    Vec m, v;
+
+    void update(ParamStore& ps) {
+        if (m.size() != ps.size() || v.size() != ps.size()) {
+            MADBP_ASSERT(step == 0);  // resumed state must match the store
+            m.setZero(ps.size());
+            v.setZero(ps.size());
+        }
+        ++step;
+        const float bc1 = (float)(1.0 - std::pow((double)beta1, (double)step));
+        const float bc2 = (float)(1.0 - std::pow((double)beta2, (double)step));
+        for (auto& e : ps.entries) {
+            if (!e.trainable) continue;
+            const int o = e.offset, n = e.numel();
+            auto p = ps.value.segment(o, n).array();
+            auto g = ps.grad.segment(o, n).array();
+            auto mm = m.segment(o, n).array();
+            auto vv = v.segment(o, n).array();
+            mm = beta1 * mm + (1 - beta1) * g;
+            vv = beta2 * vv + (1 - beta2) * g.square();
+            p -= lr * ((mm / bc1) / ((vv / bc2).sqrt() + eps) + weight_decay * p);
+        }
+    }
+};
+
+// Scales the trainable gradients so that their global L2 norm is at most max_norm (PyTorch's
+// clip_grad_norm_); returns the norm before clipping. A non-finite norm leaves the gradients
+// untouched, so the caller can skip the step.
+inline float clip_grad_norm(ParamStore& ps, float max_norm) {
+    double sq = 0;
+    for (auto& e : ps.entries)
+        if (e.trainable) sq += ps.grad.segment(e.offset, e.numel()).cast<double>().squaredNorm();
+    const double norm = std::sqrt(sq);
+    if (std::isfinite(norm) && norm > max_norm) {
+        const float scale = (float)(max_norm / (norm + 1e-6));
+        for (auto& e : ps.entries)
+            if (e.trainable) ps.grad.segment(e.offset, e.numel()) *= scale;
+    }
+    return (float)norm;
+}
+
+// Exponential moving average of the weights: shadow = decay * shadow + (1 - decay) * value
+// for trainable entries; non-trainable ones (running statistics) are copied. The first update
+// copies everything. shadow (P) is the state to checkpoint.
+struct Ema {
+    float decay = 0.995f;
+    Vec shadow;
+
+    void update(const ParamStore& ps) {
+        if (shadow.size() != ps.size()) {
+            shadow = ps.value;
+            return;
+        }
+        for (auto& e : ps.entries) {
+            auto s = shadow.segment(e.offset, e.numel());
+            auto p = ps.value.segment(e.offset, e.numel());
+            if (e.trainable) s = decay * s + (1 - decay) * p;
+            else s = p;
+        }
+    }
+    void copy_to(ParamStore& ps) const {
+        MADBP_ASSERT(shadow.size() == ps.size());
+        ps.value = shadow;
+    }
+};
+
+// ===== Checkpoints (safetensors) =====
+//
+// File layout (huggingface safetensors): u64 little-endian N; N bytes of UTF-8 JSON
+// {"__metadata__": {"key": "value", ...}, "name": {"dtype": "F32", "shape": [..],
+// "data_offsets": [begin, end]}, ...}, padded with spaces so the payload starts 8-aligned;
+// then the payload, raw little-endian float32, offsets relative to its start. Read in Python
+// with safetensors.numpy.load_file(path) or json + numpy.frombuffer.
+
+static_assert(std::numeric_limits<float>::is_iec559, "checkpoints store IEEE float32");
+#if defined(__BYTE_ORDER__) && __BYTE_ORDER__ != __ORDER_LITTLE_ENDIAN__
+#error "madbp checkpoints are little-endian; add a byte swap for this platform"
+#endif
+
+// shape row-major (numpy order); data holds prod(shape) values in that order.
+struct NamedTensor {
+    std::string name;
+    std::vector<int> shape;
+    std::vector<float> data;
+};
+
+// The tensors (in payload order) and metadata of a checkpoint.
+struct SafeTensors {
+    std::string source;  // the file name, for error messages
+    std::vector<NamedTensor> tensors;
+    std::map<std::string, std::string> metadata;
+
+    const NamedTensor* find(const std::string& name) const {
+        for (auto& t : tensors)
+            if (t.name == name) return &t;
+        return nullptr;
+    }
+    const NamedTensor& at(const std::string& name) const {
+        if (const NamedTensor* t = find(name)) return *t;
+        throw std::runtime_error(source + ": tensor '" + name + "' is missing");
+    }
+    const std::string& meta(const std::string& key) const {
+        auto it = metadata.find(key);
+        if (it == metadata.end()) throw std::runtime_error(source + ": __metadata__ has no '" + key + "'");
+        return it->second;
+    }
+};
+
+namespace detail {
+
+inline bool valid_utf8(const uint8_t* s, size_t n) {
+    size_t i = 0;
+    while (i < n) {
+        const uint8_t c = s[i];
+        int len;
+        uint32_t cp;
+        if (c < 0x80) { ++i; continue; }
+        else if ((c & 0xE0) == 0xC0) { len = 2; cp = c & 0x1F; }
+        else if ((c & 0xF0) == 0xE0) { len = 3; cp = c & 0x0F; }
+        else if ((c & 0xF8) == 0xF0) { len = 4; cp = c & 0x07; }
+        else return false;
+        if (i + len > n) return false;
+        for (int k = 1; k < len; ++k) {
+            if ((s[i + k] & 0xC0) != 0x80) return false;
+            cp = (cp << 6) | (s[i + k] & 0x3F);
+        }
+        // Reject overlong forms, surrogates and values past U+10FFFF.
+        if ((len == 2 && cp < 0x80) || (len == 3 && cp < 0x800) || (len == 4 && cp < 0x10000) || cp > 0x10FFFF ||
+            (cp >= 0xD800 && cp <= 0xDFFF))
+            return false;
+        i += len;
+    }
+    return true;
+}
+
+// A JSON value from a safetensors header. Numbers keep their literal text; objects keep their
+// members in file order (keys[i] names items[i]).
+struct JsonValue {
+    enum Type { Null, Bool, Number, String, Array, Object } type = Null;
+    std::string text;  // String: decoded value; Number: literal; Bool: "true"/"false"
+    std::vector<std::string> keys;
+    std::vector<JsonValue> items;
+};
+
+// Strict RFC 8259 parser for the header; nesting is limited so hostile input cannot exhaust
+// the stack.
+struct JsonParser {
+    const char* p;
+    const char* end;
+    const std::string& source;
+    const char* begin;
+    int depth = 0;
+
+    JsonParser(const char* data, size_t n, const std::string& source_) : p(data), end(data + n), source(source_), begin(data) {}
+
+    [[noreturn]] void fail(const std::string& what) const {
+        throw std::runtime_error(source + ": header JSON: " + what + " at byte " + std::to_string(p - begin) + " of the header");
+    }
+    void skip_ws() {
+        while (p < end && (*p == ' ' || *p == '\t' || *p == '\n' || *p == '\r')) ++p;
+    }
+    bool eat(char c) {
+        skip_ws();
+        if (p < end && *p == c) { ++p; return true; }
+        return false;
+    }
+    void expect(char c) {
+        if (!eat(c)) fail(std::string("expected '") + c + "'");
+    }
+    JsonValue parse_document() {
+        JsonValue v = value();
+        skip_ws();
+        if (p != end) fail("unexpected text after the header object");
+        return v;
+    }
+    JsonValue value() {
+        skip_ws();
+        if (p >= end) fail("unexpected end");
+        JsonValue v;
+        const char c = *p;
+        if (c == '{' || c == '[') {
+            if (++depth > 16) fail("nesting deeper than 16");
+            ++p;
+            const char close = c == '{' ? '}' : ']';
+            v.type = c == '{' ? JsonValue::Object : JsonValue::Array;
+            if (!eat(close)) {
+                do {
+                    if (v.type == JsonValue::Object) {
+                        skip_ws();
+                        if (p >= end || *p != '"') fail("expected a string key");
+                        v.keys.push_back(string());
+                        expect(':');
+                    }
+                    v.items.push_back(value());
+                } while (eat(','));
+                expect(close);
+            }
+            --depth;
+        } else if (c == '"') {
+            v.type = JsonValue::String;
+            v.text = string();
+        } else if (c == '-' || (c >= '0' && c <= '9')) {
+            v.type = JsonValue::Number;
+            v.text = number();
+        } else if (literal("true") || literal("false")) {
+            v.type = JsonValue::Bool;
+            v.text = p[-1] == 'e' && p[-2] == 'u' ? "true" : "false";
+        } else if (literal("null")) {
+            v.type = JsonValue::Null;
+        } else {
+            fail("unexpected character");
+        }
+        return v;
+    }
+    bool literal(const char* word) {
+        const size_t n = std::strlen(word);
+        if ((size_t)(end - p) >= n && std::memcmp(p, word, n) == 0) { p += n; return true; }
+        return false;
+    }
+    std::string number() {
+        const char* start = p;
+        auto digits = [&] {
+            const char* d = p;
+            while (p < end && *p >= '0' && *p <= '9') ++p;
+            if (p == d) fail("malformed number");
+        };
+        if (*p == '-') ++p;
+        if (p < end && *p == '0') ++p;
+        else digits();
+        if (p < end && *p == '.') { ++p; digits(); }
+        if (p < end && (*p == 'e' || *p == 'E')) {
+            ++p;
+            if (p < end && (*p == '+' || *p == '-')) ++p;
+            digits();
+        }
+        return std::string(start, p);
+    }
+    unsigned hex4() {
+        if (end - p < 4) fail("truncated \\u escape");
+        unsigned v = 0;
+        for (int i = 0; i < 4; ++i, ++p) {
+            const char c = *p;
+            v <<= 4;
+            if (c >= '0' && c <= '9') v |= c - '0';
+            else if (c >= 'a' && c <= 'f') v |= c - 'a' + 10;
+            else if (c >= 'A' && c <= 'F') v |= c - 'A' + 10;
+            else fail("bad \\u escape");
+        }
+        return v;
+    }
+    static void put_utf8(std::string& out, uint32_t cp) {
+        if (cp < 0x80) out += (char)cp;
+        else if (cp < 0x800) { out += (char)(0xC0 | (cp >> 6)); out += (char)(0x80 | (cp & 0x3F)); }
+        else if (cp < 0x10000) {
+            out += (char)(0xE0 | (cp >> 12)); out += (char)(0x80 | ((cp >> 6) & 0x3F)); out += (char)(0x80 | (cp & 0x3F));
+        } else {
+            out += (char)(0xF0 | (cp >> 18)); out += (char)(0x80 | ((cp >> 12) & 0x3F));
+            out += (char)(0x80 | ((cp >> 6) & 0x3F)); out += (char)(0x80 | (cp & 0x3F));
+        }
+    }
+    std::string string() {
+        ++p;  // the opening quote
+        std::string out;
+        while (true) {
+            if (p >= end) fail("unterminated string");
+            const unsigned char c = (unsigned char)*p++;
+            if (c == '"') return out;
+            if (c < 0x20) fail("control character in a string");
+            if (c != '\\') { out += (char)c; continue; }
+            if (p >= end) fail("unterminated escape");
+            const char e = *p++;
+            switch (e) {
+                case '"': out += '"'; break;
+                case '\\': out += '\\'; break;
+                case '/': out += '/'; break;
+                case 'b': out += '\b'; break;
+                case 'f': out += '\f'; break;
+                case 'n': out += '\n'; break;
+                case 'r': out += '\r'; break;
+                case 't': out += '\t'; break;
+                case 'u': {
+                    uint32_t cp = hex4();
+                    if (cp >= 0xDC00 && cp <= 0xDFFF) fail("lone low surrogate in \\u escape");
+                    if (cp >= 0xD800 && cp <= 0xDBFF) {
+                        if (end - p < 2 || p[0] != '\\' || p[1] != 'u') fail("high surrogate without its pair");
+                        p += 2;
+                        const uint32_t lo = hex4();
+                        if (lo < 0xDC00 || lo > 0xDFFF) fail("high surrogate without its pair");
+                        cp = 0x10000 + ((cp - 0xD800) << 10) + (lo - 0xDC00);
+                    }
+                    put_utf8(out, cp);
+                    break;
+                }
+                default: fail("unknown escape");
+            }
+        }
+    }
+};
+
+inline void json_escape(std::string& out, const std::string& s) {
+    out += '"';
+    for (unsigned char c : s) {
+        if (c == '"') out += "\\\"";
+        else if (c == '\\') out += "\\\\";
+        else if (c < 0x20) {
+            char buf[8];
+            std::snprintf(buf, sizeof buf, "\\u%04x", c);
+            out += buf;
+        } else out += (char)c;
+    }
+    out += '"';
+}
+
+// A non-negative integer field (shape entry or offset); fails naming `field`.
+inline uint64_t json_uint(const JsonValue& v, const std::string& source, const std::string& field) {
+    if (v.type != JsonValue::Number) throw std::runtime_error(source + ": " + field + " is not a number");
+    if (v.text.empty() || v.text.size() > 19 || v.text.find_first_not_of("0123456789") != std::string::npos)
+        throw std::runtime_error(source + ": " + field + " = " + v.text.substr(0, 32) + " is not a non-negative integer below 1e19");
+    return std::stoull(v.text);
+}
+
+inline float load_f32_le(const uint8_t* p) {
+    float f;
+    std::memcpy(&f, p, 4);
+    return f;
+}
+
+}  // namespace detail
+
+constexpr uint64_t kSafetensorsMaxHeader = 100000000;  // the reference implementation's limit
+
+// Parses and validates a whole safetensors file held in memory. Throws std::runtime_error
+// naming `source` and the offending field on anything but a well-formed file of finite F32
+// tensors whose offsets tile the payload exactly.
+inline SafeTensors parse_safetensors(const uint8_t* data, size_t size, const std::string& source = "<memory>") {
+    using detail::JsonValue;
+    auto fail = [&](const std::string& what) -> void { throw std::runtime_error(source + ": " + what); };
+    if (size < 8) fail("file is " + std::to_string(size) + " bytes, shorter than the 8-byte header size");
+    uint64_t n = 0;
+    for (int i = 7; i >= 0; --i) n = (n << 8) | data[i];
+    if (n > kSafetensorsMaxHeader) fail("header size " + std::to_string(n) + " exceeds the 100 MB limit");
+    if (n > size - 8)
+        fail("header size " + std::to_string(n) + " runs past the end of the file (" + std::to_string(size) + " bytes)");
+    const uint8_t* header = data + 8;
+    if (!detail::valid_utf8(header, n)) fail("header is not valid UTF-8");
+    if (n == 0 || header[0] != '{') fail("header does not start with '{'");
+    detail::JsonParser parser((const char*)header, n, source);
+    const JsonValue root = parser.parse_document();
+    if (root.type != JsonValue::Object) fail("header is not a JSON object");
+
+    SafeTensors st;
+    st.source = source;
+    const uint64_t payload = size - 8 - n;
+    struct Span { uint64_t begin, end; size_t tensor; };
+    std::vector<Span> spans;
+    std::vector<std::string> seen;
+    for (size_t i = 0; i < root.keys.size(); ++i) {
+        const std::string& key = root.keys[i];
+        const JsonValue& v = root.items[i];
+        if (std::find(seen.begin(), seen.end(), key) != seen.end()) fail("duplicate key '" + key + "' in the header");
+        seen.push_back(key);
+        if (key == "__metadata__") {
+            if (v.type != JsonValue::Object) fail("__metadata__ is not an object");
+            for (size_t k = 0; k < v.keys.size(); ++k) {
+                if (v.items[k].type != JsonValue::String) fail("__metadata__['" + v.keys[k] + "'] is not a string");
+                if (!st.metadata.emplace(v.keys[k], v.items[k].text).second) fail("__metadata__ has key '" + v.keys[k] + "' twice");
+            }
+            continue;
+        }
+        const std::string where = "tensor '" + key + "'";
+        if (v.type != JsonValue::Object) fail(where + " is not an object");
+        const JsonValue *dtype = nullptr, *shape = nullptr, *offsets = nullptr;
+        for (size_t k = 0; k < v.keys.size(); ++k) {
+            const JsonValue** slot = v.keys[k] == "dtype" ? &dtype : v.keys[k] == "shape" ? &shape
+                                   : v.keys[k] == "data_offsets" ? &offsets : nullptr;
+            if (!slot) fail(where + ": unknown field '" + v.keys[k] + "'");
+            if (*slot) fail(where + ": field '" + v.keys[k] + "' given twice");
+            *slot = &v.items[k];
+        }
+        if (!dtype || !shape || !offsets) fail(where + ": needs dtype, shape and data_offsets");
+        if (dtype->type != JsonValue::String) fail(where + ": dtype is not a string");
+        if (dtype->text != "F32") fail(where + ": dtype '" + dtype->text.substr(0, 16) + "' is not supported (only F32)");
+        if (shape->type != JsonValue::Array) fail(where + ": shape is not an array");
+        if (offsets->type != JsonValue::Array || offsets->items.size() != 2) fail(where + ": data_offsets is not [begin, end]");
+        NamedTensor t;
+        t.name = key;
+        uint64_t numel = 1;
+        bool overflow = false;
+        for (size_t d = 0; d < shape->items.size(); ++d) {
+            const uint64_t dim = detail::json_uint(shape->items[d], source, where + ": shape[" + std::to_string(d) + "]");
+            if (dim > (uint64_t)std::numeric_limits<int>::max()) fail(where + ": shape[" + std::to_string(d) + "] is too large");
+            t.shape.push_back((int)dim);
+            if (dim != 0 && numel > std::numeric_limits<uint64_t>::max() / 4 / dim) overflow = true;
+            numel *= dim;
+        }
+        const uint64_t begin = detail::json_uint(offsets->items[0], source, where + ": data_offsets[0]");
+        const uint64_t end = detail::json_uint(offsets->items[1], source, where + ": data_offsets[1]");
+        const std::string range = "[" + std::to_string(begin) + ", " + std::to_string(end) + "]";
+        if (end < begin) fail(where + ": data_offsets " + range + " end before they begin");
+        if (end > payload) fail(where + ": data_offsets " + range + " run past the payload (" + std::to_string(payload) + " bytes)");
+        if (overflow || numel * 4 != end - begin)
+            fail(where + ": shape " + detail::shape_string(t.shape) + " of F32 needs " + (overflow ? "too many" : std::to_string(numel * 4)) +
+                 " bytes but data_offsets " + range + " hold " + std::to_string(end - begin));
+        spans.push_back({begin, end, st.tensors.size()});
+        st.tensors.push_back(std::move(t));
+    }
+    // The tensors must tile the payload: sorted by offset, each begins where the last ended.
+    std::sort(spans.begin(), spans.end(), [](const Span& a, const Span& b) {
+        return a.begin != b.begin ? a.begin < b.begin : a.end < b.end;
+    });
+    uint64_t expected = 0;
+    for (const Span& s : spans) {
+        const std::string& name = st.tensors[s.tensor].name;
+        if (s.begin != expected)
+            fail("tensor '" + name + "': data_offsets begin at " + std::to_string(s.begin) + " but the previous tensor ends at " +
+                 std::to_string(expected) + (s.begin < expected ? " (overlap)" : " (gap)"));
+        expected = s.end;
+    }
+    if (expected != payload)
+        fail("tensors cover " + std::to_string(expected) + " bytes of a " + std::to_string(payload) + "-byte payload");
+    const uint8_t* base = data + 8 + n;
+    std::vector<NamedTensor> ordered;  // payload order
+    for (const Span& s : spans) {
+        NamedTensor& t = st.tensors[s.tensor];
+        const size_t count = (size_t)((s.end - s.begin) / 4);
+        t.data.resize(count);
+        for (size_t i = 0; i < count; ++i) {
+            const float f = detail::load_f32_le(base + s.begin + 4 * i);
+            if (!std::isfinite(f))
+                fail("tensor '" + t.name + "': element " + std::to_string(i) + " is " + (std::isnan(f) ? "NaN" : "infinite"));
+            t.data[i] = f;
+        }
+        ordered.push_back(std::move(t));
+    }
+    st.tensors = std::move(ordered);
+    return st;
+}
+
+// Serialises tensors (in the given order) and metadata into safetensors bytes. Throws
+// std::invalid_argument on an empty, duplicate, reserved or non-UTF-8 name, a shape that does
+// not match the data, or a non-finite value (which the reader would refuse).
+inline std::vector<uint8_t> serialize_safetensors(const std::vector<NamedTensor>& tensors,
+                                                  const std::map<std::string, std::string>& metadata) {
+    auto utf8 = [](const std::string& s) { return detail::valid_utf8((const uint8_t*)s.data(), s.size()); };
+    std::string header = "{";
+    bool first = true;
+    if (!metadata.empty()) {
+        header += "\"__metadata__\":{";
+        for (auto& kv : metadata) {
+            if (!utf8(kv.first) || !utf8(kv.second)) throw std::invalid_argument("metadata '" + kv.first + "': not valid UTF-8");
+            if (!first) header += ',';
+            first = false;
+            detail::json_escape(header, kv.first);
+            header += ':';
+            detail::json_escape(header, kv.second);
+        }
+        header += '}';
+        first = false;
+    }
+    std::vector<std::string> names;
+    uint64_t offset = 0;
+    for (const NamedTensor& t : tensors) {
+        if (t.name.empty() || t.name == "__metadata__" || !utf8(t.name))
+            throw std::invalid_argument("tensor name '" + t.name + "': empty, reserved or not UTF-8");
+        if (std::find(names.begin(), names.end(), t.name) != names.end())
+            throw std::invalid_argument("tensor name '" + t.name + "': given twice");
+        names.push_back(t.name);
+        long numel = 1;
+        for (int d : t.shape) {
+            if (d < 0) throw std::invalid_argument("tensor '" + t.name + "': negative dimension in shape");
+            numel *= d;
+        }
+        if ((size_t)numel != t.data.size())
+            throw std::invalid_argument("tensor '" + t.name + "': shape " + detail::shape_string(t.shape) + " holds " +
+                                        std::to_string(numel) + " values but data has " + std::to_string(t.data.size()));
+        for (size_t i = 0; i < t.data.size(); ++i)
+            if (!std::isfinite(t.data[i]))
+                throw std::invalid_argument("tensor '" + t.name + "': element " + std::to_string(i) + " is not finite");
+        if (!first) header += ',';
+        first = false;
+        detail::json_escape(header, t.name);
+        header += ":{\"dtype\":\"F32\",\"shape\":[";
+        for (size_t d = 0; d < t.shape.size(); ++d) header += (d ? "," : "") + std::to_string(t.shape[d]);
+        header += "],\"data_offsets\":[" + std::to_string(offset) + "," + std::to_string(offset + 4 * numel) + "]}";
+        offset += 4 * numel;
+    }
+    header += '}';
+    while (header.size() % 8 != 0) header += ' ';  // payload 8-aligned, as the Python writer does
+    std::vector<uint8_t> out(8 + header.size() + offset);
+    uint64_t n = header.size();
+    for (int i = 0; i < 8; ++i) out[i] = (uint8_t)(n >> (8 * i));
+    std::memcpy(out.data() + 8, header.data(), header.size());
+    uint8_t* dst = out.data() + 8 + header.size();
+    for (const NamedTensor& t : tensors) {
+        if (!t.data.empty()) std::memcpy(dst, t.data.data(), 4 * t.data.size());
+        dst += 4 * t.data.size();
+    }
+    return out;
+}
+
+namespace detail {
+[[noreturn]] inline void io_fail(const std::string& path, const std::string& what) {
+    throw std::runtime_error(path + ": " + what + ": " + std::strerror(errno));
+}
+}  // namespace detail
+
+// Writes bytes to `path` atomically: `path.tmp` is written and fsynced, then renamed over
+// `path` (and the directory fsynced), so a crash leaves either the old file or the new one.
+inline void write_file_atomic(const std::string& path, const std::vector<uint8_t>& bytes) {
+    const std::string tmp = path + ".tmp";
+    const int fd = ::open(tmp.c_str(), O_WRONLY | O_CREAT | O_TRUNC | O_CLOEXEC, 0644);
+    if (fd < 0) detail::io_fail(tmp, "cannot create");
+    size_t done = 0;
+    while (done < bytes.size()) {
+        const ssize_t w = ::write(fd, bytes.data() + done, bytes.size() - done);
+        if (w < 0 && errno == EINTR) continue;
+        if (w <= 0) {
+            const int err = errno;
+            ::close(fd);
+            ::unlink(tmp.c_str());
+            errno = err;
+            detail::io_fail(tmp, "write failed");
+        }
+        done += (size_t)w;
+    }
+    if (::fsync(fd) != 0 || ::close(fd) != 0) {
+        const int err = errno;
+        ::unlink(tmp.c_str());
+        errno = err;
+        detail::io_fail(tmp, "fsync/close failed");
+    }
+    if (::rename(tmp.c_str(), path.c_str()) != 0) {
+        const int err = errno;
+        ::unlink(tmp.c_str());
+        errno = err;
+        detail::io_fail(path, "rename from " + tmp + " failed");
+    }
+    const size_t slash = path.find_last_of('/');
+    const std::string dir = slash == std::string::npos ? "." : slash == 0 ? "/" : path.substr(0, slash);
+    const int dfd = ::open(dir.c_str(), O_RDONLY | O_CLOEXEC);
+    if (dfd >= 0) {  // best effort: some file systems refuse fsync on directories
+        ::fsync(dfd);
+        ::close(dfd);
+    }
+}
+
+inline std::vector<uint8_t> read_file(const std::string& path) {
+    FILE* f = std::fopen(path.c_str(), "rb");
+    if (!f) detail::io_fail(path, "cannot open");
+    std::vector<uint8_t> bytes;
+    uint8_t buf[1 << 16];
+    size_t got;
+    while ((got = std::fread(buf, 1, sizeof buf, f)) > 0) bytes.insert(bytes.end(), buf, buf + got);
+    const bool error = std::ferror(f);
+    std::fclose(f);
+    if (error) detail::io_fail(path, "read failed");
+    return bytes;
+}
+
+inline void save_safetensors(const std::string& path, const std::vector<NamedTensor>& tensors,
+                             const std::map<std::string, std::string>& metadata) {
+    write_file_atomic(path, serialize_safetensors(tensors, metadata));
+}
+
+inline SafeTensors load_safetensors(const std::string& path) {
+    const std::vector<uint8_t> bytes = read_file(path);
+    return parse_safetensors(bytes.data(), bytes.size(), path);
+}
+
+// --- Parameters and training state in checkpoints -------------------------------------------
+
+inline NamedTensor make_tensor(const std::string& name, std::vector<int> shape, const float* data) {
+    NamedTensor t{name, std::move(shape), {}};
+    t.data.assign(data, data + detail::shape_numel(t.shape));
+    return t;
+}
+
+// One tensor per store entry, named and shaped as the entry.
+inline std::vector<NamedTensor> param_tensors(const ParamStore& ps) {
+    std::vector<NamedTensor> out;
+    for (auto& e : ps.entries) out.push_back(make_tensor(e.name, e.shape, ps.value.data() + e.offset));
+    return out;
+}
+
+// Fills every store entry from the tensor of the same name; names and shapes must match
+// exactly. Tensors named "optim.*" (training state) are ignored; any other tensor the store
+// does not have is an error (a checkpoint of another model configuration).
+inline void read_param_tensors(const SafeTensors& st, ParamStore& ps) {
+    for (auto& e : ps.entries) {
+        const NamedTensor& t = st.at(e.name);
+        if (t.shape != e.shape)
+            throw std::runtime_error(st.source + ": tensor '" + e.name + "' has shape " + detail::shape_string(t.shape) +
+                                     " but the model expects " + detail::shape_string(e.shape));
+    }
+    for (auto& t : st.tensors)
+        if (t.name.rfind("optim.", 0) != 0 && !ps.find(t.name))
+            throw std::runtime_error(st.source + ": tensor '" + t.name + "' is not a parameter of this model");
+    for (auto& e : ps.entries) {
+        const NamedTensor& t = st.at(e.name);
+        std::copy(t.data.begin(), t.data.end(), ps.value.data() + e.offset);
+    }
+}
+
+inline void save_params(const std::string& path, const ParamStore& ps, const std::map<std::string, std::string>& metadata) {
+    save_safetensors(path, param_tensors(ps), metadata);
+}
+
+inline void load_params(const std::string& path, ParamStore& ps) { read_param_tensors(load_safetensors(path), ps); }
+
+// Reads a flat tensor of exactly n values into out (used for optimizer state).
+inline void read_flat(const SafeTensors& st, const std::string& name, int n, Vec& out) {
+    const NamedTensor& t = st.at(name);
+    if (t.shape != std::vector<int>{n})
+        throw std::runtime_error(st.source + ": tensor '" + name + "' has shape " + detail::shape_string(t.shape) + " but [" +
+                                 std::to_string(n) + "] is expected");
+    out = Eigen::Map<const Vec>(t.data.data(), n);
+}
+
+// Adam state: tensors optim.adam.m / optim.adam.v (P) and metadata "optim.adam.step".
+// Only the moments and step are saved; hyper-parameters belong to the training config.
+inline void append_adam(const Adam& adam, std::vector<NamedTensor>& tensors, std::map<std::string, std::string>& metadata) {
+    tensors.push_back(make_tensor("optim.adam.m", {(int)adam.m.size()}, adam.m.data()));
+    tensors.push_back(make_tensor("optim.adam.v", {(int)adam.v.size()}, adam.v.data()));
+    metadata["optim.adam.step"] = std::to_string(adam.step);
+}
+inline void read_adam(const SafeTensors& st, int param_count, Adam& adam) {
+    const std::string& s = st.meta("optim.adam.step");
+    if (s.empty() || s.size() > 18 || s.find_first_not_of("0123456789") != std::string::npos)
+        throw std::runtime_error(st.source + ": __metadata__['optim.adam.step'] = '" + s + "' is not a step count");
+    read_flat(st, "optim.adam.m", param_count, adam.m);
+    read_flat(st, "optim.adam.v", param_count, adam.v);
+    adam.step = std::stol(s);
+}
+
+// EMA state: tensor optim.ema.shadow (P) and metadata "optim.ema.decay".
+inline void append_ema(const Ema& ema, std::vector<NamedTensor>& tensors, std::map<std::string, std::string>& metadata) {
+    tensors.push_back(make_tensor("optim.ema.shadow", {(int)ema.shadow.size()}, ema.shadow.data()));
+    char buf[32];
+    std::snprintf(buf, sizeof buf, "%.9g", ema.decay);
+    metadata["optim.ema.decay"] = buf;
+}
+inline void read_ema(const SafeTensors& st, int param_count, Ema& ema) {
+    read_flat(st, "optim.ema.shadow", param_count, ema.shadow);
+    const std::string& s = st.meta("optim.ema.decay");
+    char* endp = nullptr;
+    const float d = std::strtof(s.c_str(), &endp);
+    if (s.empty() || *endp != '\0' || !(d >= 0 && d <= 1))
+        throw std::runtime_error(st.source + ": __metadata__['optim.ema.decay'] = '" + s + "' is not a decay in [0, 1]");
+    ema.decay = d;
+}
+
+// RNG state as metadata "<key>" = four decimal words (float tensors cannot hold u64 exactly).
+inline void append_rng(const Rng& rng, const std::string& key, std::map<std::string, std::string>& metadata) {
+    std::string s;
+    for (int i = 0; i < 4; ++i) s += (i ? " " : "") + std::to_string(rng.s[i]);
+    metadata[key] = s;
+}
+inline void read_rng(const SafeTensors& st, const std::string& key, Rng& rng) {
+    const std::string& s = st.meta(key);
+    uint64_t w[4];
+    const char* p = s.c_str();
+    for (int i = 0; i < 4; ++i) {
+        char* endp = nullptr;
+        errno = 0;
+        if (*p < '0' || *p > '9') endp = const_cast<char*>(p);
+        else w[i] = std::strtoull(p, &endp, 10);
+        if (endp == p || errno == ERANGE || (i < 3 ? *endp != ' ' : *endp != '\0'))
+            throw std::runtime_error(st.source + ": __metadata__['" + key + "'] = '" + s.substr(0, 80) + "' is not four 64-bit words");
+        p = endp + (i < 3 ? 1 : 0);
+    }
+    if ((w[0] | w[1] | w[2] | w[3]) == 0) throw std::runtime_error(st.source + ": __metadata__['" + key + "'] is the all-zero state");
+    for (int i = 0; i < 4; ++i) rng.s[i] = w[i];
+}
+
+}  // namespace madbp
+
+// ===== MA-DBP model (below) =====
+
+#endif  // MADBP_HPP
