@@ -1,0 +1,768 @@
+// madbp_train.hpp - demonstrations, datasets, the multi-term loss and training of MA-DBP.
+// Part of madbp (Multi-Agent Diffusion Based Planner), header-only C++17. MIT licence.
+//
+// What it is
+//   SPEC.md section 7: record demonstrations from a demonstrator (the guided expert, or any
+//   Policy), cut them into moving windows, and train the MA-DBP denoiser with the paper's
+//   curriculum over agent counts and its loss W . [L_noise, L_boundary, L_temporal,
+//   L_collision], Adam, gradient clipping, weight EMA, atomic resumable checkpoints.
+//
+// Use
+//   #include "madbp_train.hpp"
+//   madbp::CollectConfig cc;                                   // maps, n = 1..4, episodes
+//   madbp::DemoSet demos = madbp::collect_demonstrations(cc, madbp::expert_demonstrator(), "expert");
+//   madbp::save_demos("demos.bin", demos);
+//   madbp::TrainConfig tc;  tc.out = "model.safetensors";
+//   madbp::train(demos, madbp::ModelConfig{}, tc);             // writes model + training state
+//
+// Configuration macros: none beyond madbp.hpp's.
+
+#ifndef MADBP_TRAIN_HPP
+#define MADBP_TRAIN_HPP
+
+#include "madbp_model_wip.hpp"
+
+#include <array>
+#include <cstring>
+#include <fstream>
+#include <functional>
+
+namespace madbp {
+
+// =============================================================================================
+// Demonstrations (SPEC 7)
+// =============================================================================================
+
+// One recorded episode of a fixed team. Frame t = 0 is the start; frame t holds the state
+// after t steps. Arrays are frame-major: pos[t * agents + i].
+struct Demonstration {
+    std::string map_name;
+    Map map;
+    int agents = 0, steps = 0;  // frames = steps + 1
+    bool success = false;
+    std::vector<Vec2> goals;            // (agents)
+    std::vector<Vec2> pos, vel, act;    // pos, vel: (steps + 1) * agents; act: steps * agents
+
+    // Position of agent i at frame t; past the end the agent stays where it finished.
+    Vec2 position(int t, int i) const { return pos[(size_t)std::min(t, steps) * agents + i]; }
+};
+struct DemoSet {
+    std::string demonstrator;  // e.g. "expert" or "mappo:models/mappo/empty-4.safetensors"
+    std::vector<Demonstration> episodes;
+};
+
+// Makes the demonstrator for one episode (its world and seed).
+using DemonstratorFactory = PolicyFactory;
+inline DemonstratorFactory expert_demonstrator(ExpertParams p = ExpertParams{}) {
+    return [p](const World& w, uint64_t) { return std::unique_ptr<Policy>(new GuidedExpert(w.map(), p)); };
+}
+
+struct CollectConfig {
+    std::vector<std::string> maps = {"empty", "obstacles", "barrier"};
+    int n_train_max = 4;          // teams of 1 .. n_train_max agents
+    int episodes = 200;           // per (map, n) cell, >= 1
+    uint64_t seed = 0;            // episode e of a cell uses seed + e + 100000 * (cell index)
+    bool successful_only = true;  // keep only episodes the demonstrator solved
+    int threads = 1;
+    bool quiet = false;
+};
+
+// Runs the demonstrator and records every step (positions, velocities, actions).
+inline Demonstration record_demonstration(World& world, Policy& policy, const std::string& map_name) {
+    Demonstration d;
+    d.map_name = map_name;
+    d.map = world.map();
+    d.agents = world.size();
+    for (const Agent& a : world.agents()) {
+        d.goals.push_back(a.goal);
+        d.pos.push_back(a.pos);
+        d.vel.push_back(a.vel);
+    }
+    while (!world.done()) {
+        std::vector<Vec2> u = policy.act(world);
+        for (Vec2& f : u) f = clamp_box(f, world.config().max_action);
+        d.act.insert(d.act.end(), u.begin(), u.end());
+        world.step(u);
+        for (const Agent& a : world.agents()) {
+            d.pos.push_back(a.pos);
+            d.vel.push_back(a.vel);
+        }
+        d.steps++;
+    }
+    d.success = world.metrics().success;
+    return d;
+}
+
+inline DemoSet collect_demonstrations(const CollectConfig& c, const DemonstratorFactory& factory, const std::string& name) {
+    if (c.episodes < 1) throw std::invalid_argument("episodes: must be >= 1");
+    if (c.n_train_max < 1 || c.n_train_max > 64) throw std::invalid_argument("n_train_max: must be in [1, 64]");
+    DemoSet set;
+    set.demonstrator = name;
+    const int cells = (int)c.maps.size() * c.n_train_max;
+    ProgressLine progress("collect", (long)cells * c.episodes, c.quiet);
+    for (int m = 0; m < (int)c.maps.size(); ++m)
+        for (int n = 1; n <= c.n_train_max; ++n) {
+            const int cell = m * c.n_train_max + (n - 1);
+            std::vector<Demonstration> got(c.episodes);
+            std::string error;
+#pragma omp parallel for schedule(dynamic) num_threads(std::max(1, c.threads))
+            for (int e = 0; e < c.episodes; ++e) {
+                try {
+                    const uint64_t seed = c.seed + e + 100000ull * cell;
+                    World w = make_random_world(c.maps[m], n, seed);
+                    std::unique_ptr<Policy> policy = factory(w, seed);
+                    got[e] = record_demonstration(w, *policy, c.maps[m]);
+                } catch (const std::exception& ex) {
+#pragma omp critical
+                    if (error.empty()) error = ex.what();
+                }
+#pragma omp critical
+                progress.tick();
+            }
+            if (!error.empty()) throw std::runtime_error("collect: " + error);
+            for (Demonstration& d : got)
+                if (d.success || !c.successful_only) set.episodes.push_back(std::move(d));
+        }
+    return set;
+}
+
+// ---------------------------------------------------------------------------------------------
+// Dataset file (little-endian binary; documented in README "Dataset format"):
+//   "MADBPDS1", u32 version = 1, string demonstrator, u32 episode count, then per episode:
+//   string map_name, f64 half_size, u32 discs + discs * (f64 cx, cy, r),
+//   u32 boxes + boxes * (f64 x0, y0, x1, y1), u32 agents, u32 steps, u8 success,
+//   goals agents*(f32 x, y), pos and vel (steps+1)*agents*(f32 x, y), act steps*agents*(f32 x, y).
+//   A string is u32 length + bytes. Written atomically (temp file + rename).
+namespace detail {
+struct ByteWriter {
+    std::vector<uint8_t> bytes;
+    template <class T> void put(T v) {
+        const uint8_t* p = reinterpret_cast<const uint8_t*>(&v);  // x86-64 and ARM64 are little-endian
+        bytes.insert(bytes.end(), p, p + sizeof(T));
+    }
+    void str(const std::string& s) { put<uint32_t>((uint32_t)s.size()); bytes.insert(bytes.end(), s.begin(), s.end()); }
+    void vecs(const std::vector<Vec2>& v) { for (Vec2 a : v) { put<float>((float)a.x); put<float>((float)a.y); } }
+};
+struct ByteReader {
+    const uint8_t* p;
+    size_t left;
+    std::string source;
+    [[noreturn]] void fail(const std::string& what) const { throw std::runtime_error(source + ": " + what); }
+    template <class T> T get(const char* field) {
+        if (left < sizeof(T)) fail(std::string("file ends inside '") + field + "' (truncated)");
+        T v;
+        std::memcpy(&v, p, sizeof(T));
+        p += sizeof(T);
+        left -= sizeof(T);
+        return v;
+    }
+    std::string str(const char* field, size_t max_len) {
+        uint32_t n = get<uint32_t>(field);
+        if (n > max_len || n > left) fail(std::string("'") + field + "' length " + std::to_string(n) + " is impossible");
+        std::string s((const char*)p, n);
+        p += n;
+        left -= n;
+        return s;
+    }
+    double finite(double v, const char* field) const {
+        if (!std::isfinite(v)) fail(std::string("'") + field + "' is not finite");
+        return v;
+    }
+    void vecs(std::vector<Vec2>& v, size_t count, const char* field) {
+        if (count * 8 > left) fail(std::string("file ends inside '") + field + "' (truncated)");
+        v.resize(count);
+        for (Vec2& a : v) {
+            a.x = finite(get<float>(field), field);
+            a.y = finite(get<float>(field), field);
+        }
+    }
+};
+}  // namespace detail
+
+inline void save_demos(const std::string& path, const DemoSet& set) {
+    detail::ByteWriter w;
+    w.bytes.insert(w.bytes.end(), {'M', 'A', 'D', 'B', 'P', 'D', 'S', '1'});
+    w.put<uint32_t>(1);
+    w.str(set.demonstrator);
+    w.put<uint32_t>((uint32_t)set.episodes.size());
+    for (const Demonstration& d : set.episodes) {
+        w.str(d.map_name);
+        w.put<double>(d.map.half_size);
+        w.put<uint32_t>((uint32_t)d.map.discs.size());
+        for (const Disc& o : d.map.discs) { w.put<double>(o.c.x); w.put<double>(o.c.y); w.put<double>(o.r); }
+        w.put<uint32_t>((uint32_t)d.map.boxes.size());
+        for (const Box& b : d.map.boxes) { w.put<double>(b.lo.x); w.put<double>(b.lo.y); w.put<double>(b.hi.x); w.put<double>(b.hi.y); }
+        w.put<uint32_t>((uint32_t)d.agents);
+        w.put<uint32_t>((uint32_t)d.steps);
+        w.put<uint8_t>(d.success ? 1 : 0);
+        w.vecs(d.goals);
+        w.vecs(d.pos);
+        w.vecs(d.vel);
+        w.vecs(d.act);
+    }
+    write_file_atomic(path, w.bytes);
+}
+
+inline DemoSet load_demos(const std::string& path) {
+    const std::vector<uint8_t> bytes = read_file(path);
+    detail::ByteReader r{bytes.data(), bytes.size(), path};
+    if (bytes.size() < 8 || std::memcmp(bytes.data(), "MADBPDS1", 8) != 0) r.fail("not a madbp dataset (magic 'MADBPDS1' missing)");
+    r.p += 8;
+    r.left -= 8;
+    const uint32_t version = r.get<uint32_t>("version");
+    if (version != 1) r.fail("dataset version " + std::to_string(version) + " is not supported (expected 1)");
+    DemoSet set;
+    set.demonstrator = r.str("demonstrator", 4096);
+    const uint32_t count = r.get<uint32_t>("episode count");
+    if (count > r.left / 16) r.fail("episode count " + std::to_string(count) + " does not fit the file");
+    set.episodes.resize(count);
+    for (uint32_t e = 0; e < count; ++e) {
+        Demonstration& d = set.episodes[e];
+        d.map_name = r.str("map_name", 256);
+        d.map.half_size = r.finite(r.get<double>("half_size"), "half_size");
+        if (!(d.map.half_size > 0.2 && d.map.half_size < 1000)) r.fail("episode " + std::to_string(e) + ": half_size out of range");
+        const uint32_t discs = r.get<uint32_t>("discs");
+        if (discs > 100000 || discs * 24ull > r.left) r.fail("episode " + std::to_string(e) + ": disc count impossible");
+        for (uint32_t i = 0; i < discs; ++i) {
+            Disc o;
+            o.c.x = r.finite(r.get<double>("disc"), "disc");
+            o.c.y = r.finite(r.get<double>("disc"), "disc");
+            o.r = r.finite(r.get<double>("disc"), "disc");
+            d.map.discs.push_back(o);
+        }
+        const uint32_t boxes = r.get<uint32_t>("boxes");
+        if (boxes > 100000 || boxes * 32ull > r.left) r.fail("episode " + std::to_string(e) + ": box count impossible");
+        for (uint32_t i = 0; i < boxes; ++i) {
+            Box b;
+            b.lo.x = r.finite(r.get<double>("box"), "box");
+            b.lo.y = r.finite(r.get<double>("box"), "box");
+            b.hi.x = r.finite(r.get<double>("box"), "box");
+            b.hi.y = r.finite(r.get<double>("box"), "box");
+            d.map.boxes.push_back(b);
+        }
+        const uint32_t agents = r.get<uint32_t>("agents"), steps = r.get<uint32_t>("steps");
+        if (agents < 1 || agents > 1024) r.fail("episode " + std::to_string(e) + ": agents = " + std::to_string(agents) + " outside [1, 1024]");
+        if (steps > 100000) r.fail("episode " + std::to_string(e) + ": steps = " + std::to_string(steps) + " is impossible");
+        d.agents = (int)agents;
+        d.steps = (int)steps;
+        d.success = r.get<uint8_t>("success") != 0;
+        r.vecs(d.goals, agents, "goals");
+        r.vecs(d.pos, (size_t)(steps + 1) * agents, "pos");
+        r.vecs(d.vel, (size_t)(steps + 1) * agents, "vel");
+        r.vecs(d.act, (size_t)steps * agents, "act");
+    }
+    if (r.left != 0) r.fail(std::to_string(r.left) + " trailing bytes after the last episode");
+    return set;
+}
+
+// =============================================================================================
+// Losses (SPEC 7, paper eqs. 3-8)
+// =============================================================================================
+// x0_hat is (2, H*A) in normalised units, columns a*H + t. Every auxiliary loss returns its
+// value and ADDS weight * dL/dx0_hat into grad. scene_weight (B) scales each scene's terms
+// (the trainer passes alpha_bar_k so that very noisy samples, whose x0_hat is mostly noise,
+// do not dominate). mask (A): 1 = active agent.
+
+// Smooth Euclidean norm (differentiable at 0) and its gradient factor.
+inline float smooth_norm(float x, float y) { return std::sqrt(x * x + y * y + 1e-8f); }
+
+// L_boundary = mean over active agents of |x0_hat[t=0] - start| + |x0_hat[t=H-1] - horizon_goal|.
+inline double boundary_loss(const Mat& x0_hat, const Mat& start, const Mat& horizon_goal, const std::vector<float>& mask,
+                            int H, int n, const float* scene_weight, float weight, Mat& grad) {
+    const int A = (int)mask.size();
+    double total = 0, active = 0;
+    for (int a = 0; a < A; ++a) active += mask[a];
+    if (active == 0) return 0;
+    for (int a = 0; a < A; ++a) {
+        if (!mask[a]) continue;
+        const float w = scene_weight[a / n];
+        const long c0 = (long)a * H, c1 = c0 + H - 1;
+        for (int side = 0; side < 2; ++side) {
+            const long col = side ? c1 : c0;
+            const float dx = x0_hat(0, col) - (side ? horizon_goal(0, a) : start(0, a));
+            const float dy = x0_hat(1, col) - (side ? horizon_goal(1, a) : start(1, a));
+            const float len = smooth_norm(dx, dy);
+            total += w * len;
+            const float g = (float)(weight * w / active) / len;
+            grad(0, col) += g * dx;
+            grad(1, col) += g * dy;
+        }
+    }
+    return total / active;
+}
+
+// L_temporal = mean over active agents of mean_t |a_t| + jerk_weight * mean_t |j_t|, with
+// v_t = x[t+1] - x[t], a_t = v[t+1] - v[t], j_t = a[t+1] - a[t] (finite differences per step).
+inline double temporal_loss(const Mat& x0_hat, const std::vector<float>& mask, int H, int n, float jerk_weight,
+                            const float* scene_weight, float weight, Mat& grad) {
+    const int A = (int)mask.size();
+    double total = 0, active = 0;
+    for (int a = 0; a < A; ++a) active += mask[a];
+    if (active == 0 || H < 4) return 0;
+    // Second and third differences as stencils over x[t..t+3].
+    const float acc_st[3] = {1, -2, 1}, jerk_st[4] = {-1, 3, -3, 1};
+    for (int a = 0; a < A; ++a) {
+        if (!mask[a]) continue;
+        const float w = scene_weight[a / n];
+        const long c = (long)a * H;
+        for (int order = 0; order < 2; ++order) {
+            const int len = order ? 4 : 3, terms = H - len + 1;
+            const float* st = order ? jerk_st : acc_st;
+            const float scale = (order ? jerk_weight : 1.0f) / terms;
+            for (int t = 0; t < terms; ++t) {
+                float dx = 0, dy = 0;
+                for (int s = 0; s < len; ++s) {
+                    dx += st[s] * x0_hat(0, c + t + s);
+                    dy += st[s] * x0_hat(1, c + t + s);
+                }
+                const float l = smooth_norm(dx, dy);
+                total += w * scale * l;
+                const float g = (float)(weight * w * scale / active) / l;
+                for (int s = 0; s < len; ++s) {
+                    grad(0, c + t + s) += g * st[s] * dx;
+                    grad(1, c + t + s) += g * st[s] * dy;
+                }
+            }
+        }
+    }
+    return total / active;
+}
+
+// L_collision = (1/B) sum_b sum_t [ sum_{i != j active} ReLU(d_min - |s_i - s_j|)
+//                                   + sum_i ReLU(radius - clearance(s_i)) ]
+// in world units (x0_hat * scale); clearance is the distance to the nearest obstacle or wall
+// surface of the scene's map. d_min = 2 * radius.
+inline double collision_loss(const Mat& x0_hat, const std::vector<float>& mask, int B, int n, int H,
+                             const std::vector<Map>& maps, float scale, float radius, const float* scene_weight,
+                             float weight, Mat& grad) {
+    double total = 0;
+    const float d_min = 2 * radius;
+    auto world = [&](int a, int t) { return Vec2{x0_hat(0, (long)a * H + t) * (double)scale, x0_hat(1, (long)a * H + t) * (double)scale}; };
+    for (int b = 0; b < B; ++b) {
+        const float w = scene_weight[b], g_scale = weight * w / B * scale;  // d(world)/d(normalised) = scale
+        for (int t = 0; t < H; ++t)
+            for (int i = 0; i < n; ++i) {
+                const int ai = b * n + i;
+                if (!mask[ai]) continue;
+                const Vec2 si = world(ai, t);
+                for (int j = 0; j < n; ++j) {
+                    const int aj = b * n + j;
+                    if (j == i || !mask[aj]) continue;
+                    const Vec2 d = si - world(aj, t);
+                    const double dist = norm(d);
+                    if (dist >= d_min) continue;
+                    total += w * (d_min - dist);
+                    // Both orders (i, j) and (j, i) are in the sum; this one moves s_i and s_j.
+                    const Vec2 u = dist > 1e-9 ? d / dist : Vec2{1, 0};
+                    grad(0, (long)ai * H + t) -= (float)(g_scale * u.x);
+                    grad(1, (long)ai * H + t) -= (float)(g_scale * u.y);
+                    grad(0, (long)aj * H + t) += (float)(g_scale * u.x);
+                    grad(1, (long)aj * H + t) += (float)(g_scale * u.y);
+                }
+                Vec2 away;
+                const double clear = static_clearance(maps[b], si, &away);
+                if (clear >= radius) continue;
+                total += w * (radius - clear);
+                grad(0, (long)ai * H + t) -= (float)(g_scale * away.x);
+                grad(1, (long)ai * H + t) -= (float)(g_scale * away.y);
+            }
+    }
+    return total / B;
+}
+
+// =============================================================================================
+// Training batches: windows, curriculum, augmentation
+// =============================================================================================
+
+struct TrainConfig {
+    int n_train_max = 4;          // curriculum end: windows with up to this many agents
+    long steps = 20000;           // optimizer steps
+    int batch = 64;               // windows (scenes) per step
+    float lr = 3e-4f;
+    float clip = 1.0f;            // global gradient-norm clip
+    float ema_decay = 0.995f;
+    long ema_start = 1000;        // EMA tracks the weights from this step (copied before)
+    float curriculum_end = 0.5f;  // fraction of training at which n_curr reaches n_train_max
+    std::array<float, 4> loss_weights = {0.85f, 0.025f, 0.025f, 0.1f};  // noise, boundary, temporal, collision
+    float jerk_weight = 1.0f;     // lambda_jerk in L_temporal
+    int stride = 1;               // window start stride in steps
+    bool augment = true;          // random x / y mirror of whole scenes
+    float goal_reach = 0.55f;     // as SamplerConfig::goal_reach: the end is pinned when the goal is this near
+    float val_fraction = 0.05f;   // episodes held out for the validation loss
+    int val_batches = 4;
+    long checkpoint_every = 1000;
+    long log_every = 100;
+    std::string out;              // model file; training state in out + ".train"; CSV in out + ".csv"
+    bool resume = false;
+    uint64_t seed = 0;
+    bool quiet = false;
+};
+
+// A window of one demonstration: frames t .. t+H-1 of episode `episode`.
+struct WindowRef { int episode, t; };
+
+// A batch ready for the model and the loss. x0 (2, H*A) normalised; horizon_goal (2, A) the
+// demonstrated position at t+H; pinned (H*A) 1 where the sampler would inpaint (t = 0, and the
+// end when the goal is within reach), those columns are given to the model clean.
+struct TrainBatch {
+    SceneBatch scene;
+    Mat x0, horizon_goal;
+    std::vector<float> pinned;
+    std::vector<Map> maps;  // per scene, in world units, mirrored like the scene
+};
+
+inline Map mirrored(const Map& m, double fx, double fy) {
+    Map out = m;
+    for (Disc& o : out.discs) o.c = Vec2{o.c.x * fx, o.c.y * fy};
+    for (Box& b : out.boxes) {
+        Vec2 a{b.lo.x * fx, b.lo.y * fy}, c{b.hi.x * fx, b.hi.y * fy};
+        b.lo = Vec2{std::min(a.x, c.x), std::min(a.y, c.y)};
+        b.hi = Vec2{std::max(a.x, c.x), std::max(a.y, c.y)};
+    }
+    return out;
+}
+
+// Draws `batch` windows with at most n_curr agents. Agents go to random distinct PE_agent slots.
+inline void make_train_batch(const DemoSet& demos, const std::vector<WindowRef>& windows, const ModelConfig& mc,
+                             const TrainConfig& tc, int n_curr, Rng& rng, TrainBatch& tb) {
+    std::vector<int> picks;
+    int n_slots = 1;
+    for (int tries = 0; (int)picks.size() < tc.batch; ++tries) {
+        if (tries > 1000 * tc.batch) throw std::runtime_error("train: no window with <= " + std::to_string(n_curr) + " agents in the dataset");
+        int w = rng.uniform_int((int)windows.size());
+        int agents = demos.episodes[windows[w].episode].agents;
+        if (agents > n_curr) continue;
+        picks.push_back(w);
+        n_slots = std::max(n_slots, agents);
+    }
+    if (n_slots > mc.n_max) throw std::invalid_argument("train: windows with " + std::to_string(n_slots) + " agents exceed n_max");
+    const int B = tc.batch, n = n_slots, H = mc.horizon, A = B * n, G = mc.grid;
+    const float s = mc.position_scale, reach = tc.goal_reach;
+    tb.scene.resize(B, n, G);
+    tb.x0.setZero(2, (long)H * A);
+    tb.horizon_goal.setZero(2, A);
+    tb.pinned.assign((size_t)H * A, 0.0f);
+    tb.maps.resize(B);
+    std::vector<int> order(n), slots(mc.n_max);
+    for (int b = 0; b < B; ++b) {
+        const WindowRef ref = windows[picks[b]];
+        const Demonstration& d = demos.episodes[ref.episode];
+        const double fx = tc.augment && rng.uniform() < 0.5 ? -1 : 1, fy = tc.augment && rng.uniform() < 0.5 ? -1 : 1;
+        auto mir = [&](Vec2 p) { return Vec2{p.x * fx, p.y * fy}; };
+        tb.maps[b] = mirrored(d.map, fx, fy);
+        Grid g = occupancy_grid(tb.maps[b], G);
+        for (int j = 0; j < G * G; ++j) tb.scene.grid(0, (long)b * G * G + j) = g.cells[j];
+        std::iota(order.begin(), order.end(), 0);
+        for (int i = d.agents - 1; i > 0; --i) std::swap(order[i], order[rng.uniform_int(i + 1)]);
+        std::iota(slots.begin(), slots.end(), 0);
+        for (int i = 0; i < d.agents; ++i) std::swap(slots[i], slots[i + rng.uniform_int(mc.n_max - i)]);
+        tb.scene.count[b] = d.agents;
+        for (int i = 0; i < d.agents; ++i) {
+            const int a = b * n + i, src = order[i];
+            tb.scene.agent_mask[a] = 1;
+            tb.scene.slot[a] = slots[i];
+            const Vec2 start = mir(d.position(ref.t, src)), goal = mir(d.goals[src]);
+            tb.scene.pose.col(a) << (float)(start.x / s), (float)(start.y / s), (float)(goal.x / s), (float)(goal.y / s);
+            for (int t = 0; t < H; ++t) {
+                const Vec2 p = mir(d.position(ref.t + t, src));
+                tb.x0.col((long)a * H + t) << (float)(p.x / s), (float)(p.y / s);
+            }
+            const Vec2 hg = mir(d.position(ref.t + H, src));
+            tb.horizon_goal.col(a) << (float)(hg.x / s), (float)(hg.y / s);
+            tb.pinned[(size_t)a * H] = 1;
+            if (norm(goal - start) <= reach) tb.pinned[(size_t)a * H + H - 1] = 1;
+        }
+        for (int i = d.agents; i < n; ++i) tb.scene.slot[b * n + i] = slots[i];  // unused, distinct
+    }
+}
+
+inline std::vector<WindowRef> make_windows(const DemoSet& demos, const std::vector<int>& episodes, const ModelConfig& mc, int stride) {
+    std::vector<WindowRef> out;
+    for (int e : episodes) {
+        const Demonstration& d = demos.episodes[e];
+        if (mc.window == WindowMode::CT) { out.push_back({e, 0}); continue; }
+        for (int t = 0; t < std::max(1, d.steps); t += std::max(1, stride)) out.push_back({e, t});
+    }
+    return out;
+}
+
+// =============================================================================================
+// One loss evaluation: noise the batch, run the model, combine the four terms (SPEC 7)
+// =============================================================================================
+
+struct LossTerms {
+    double noise = 0, boundary = 0, temporal = 0, collision = 0, total = 0;
+};
+
+struct LossWorkspace {
+    Mat eps, x_k, eps_pred, x0_hat, d_x0, d_eps;
+    std::vector<int> k;
+    std::vector<float> alpha_bar;
+};
+
+// Forward (and, when `backward`, the model's backward) of the training loss on one batch.
+inline LossTerms diffusion_loss(MadbpModel& model, const NoiseSchedule& schedule, const TrainBatch& tb, const TrainConfig& tc,
+                                Rng& rng, bool backward, LossWorkspace& ws) {
+    const ModelConfig& mc = model.config;
+    const SceneBatch& sc = tb.scene;
+    const int B = sc.B, n = sc.n, A = B * n, H = mc.horizon;
+    const auto& W = tc.loss_weights;
+    ws.k.resize(B);
+    ws.alpha_bar.resize(B);
+    for (int b = 0; b < B; ++b) {
+        ws.k[b] = 1 + rng.uniform_int(schedule.K);
+        ws.alpha_bar[b] = (float)schedule.alpha_bar[ws.k[b]];
+    }
+    ws.eps.resize(2, (long)H * A);
+    for (long j = 0; j < ws.eps.size(); ++j) ws.eps.data()[j] = (float)rng.normal();
+    ws.x_k.resize(2, (long)H * A);
+    for (int a = 0; a < A; ++a) {
+        const int b = a / n;
+        const float sa = std::sqrt(ws.alpha_bar[b]), s1a = std::sqrt(1 - ws.alpha_bar[b]);
+        for (int t = 0; t < H; ++t) {
+            const long c = (long)a * H + t;
+            if (!sc.agent_mask[a]) ws.x_k.col(c).setZero();
+            else if (tb.pinned[c]) ws.x_k.col(c) = tb.x0.col(c);
+            else ws.x_k.col(c) = sa * tb.x0.col(c) + s1a * ws.eps.col(c);
+        }
+    }
+    model.encode_context(sc);
+    model.denoise(ws.x_k, ws.k.data(), ws.eps_pred);
+
+    LossTerms L;
+    ws.d_eps.setZero(2, (long)H * A);
+    // L_noise: mean squared error over the active, not pinned, elements.
+    double count = 0;
+    for (long c = 0; c < (long)H * A; ++c) count += sc.agent_mask[c / H] && !tb.pinned[c] ? 2 : 0;
+    for (long c = 0; c < (long)H * A; ++c) {
+        if (!sc.agent_mask[c / H] || tb.pinned[c]) continue;
+        for (int r = 0; r < 2; ++r) {
+            const float e = ws.eps_pred(r, c) - ws.eps(r, c);
+            L.noise += e * e;
+            ws.d_eps(r, c) = (float)(2 * W[0] * e / count);
+        }
+    }
+    L.noise /= std::max(1.0, count);
+    // x0_hat from eps_pred (pinned columns are known exactly and pass no gradient).
+    ws.x0_hat.resize(2, (long)H * A);
+    for (long c = 0; c < (long)H * A; ++c) {
+        const float ab = ws.alpha_bar[c / H / n];
+        if (tb.pinned[c] || !sc.agent_mask[c / H]) ws.x0_hat.col(c) = ws.x_k.col(c);
+        else
+            for (int r = 0; r < 2; ++r) ws.x0_hat(r, c) = predict_x0(ws.x_k(r, c), ws.eps_pred(r, c), ab);
+    }
+    ws.d_x0.setZero(2, (long)H * A);
+    L.boundary = boundary_loss(ws.x0_hat, sc.pose.topRows(2), tb.horizon_goal, sc.agent_mask, H, n, ws.alpha_bar.data(), W[1], ws.d_x0);
+    L.temporal = temporal_loss(ws.x0_hat, sc.agent_mask, H, n, tc.jerk_weight, ws.alpha_bar.data(), W[2], ws.d_x0);
+    L.collision = collision_loss(ws.x0_hat, sc.agent_mask, B, n, H, tb.maps, mc.position_scale, 0.1f, ws.alpha_bar.data(), W[3], ws.d_x0);
+    L.total = W[0] * L.noise + W[1] * L.boundary + W[2] * L.temporal + W[3] * L.collision;
+    if (!backward) return L;
+    // d x0_hat / d eps_pred = -sqrt(1 - ab) / sqrt(ab) on the free columns.
+    for (long c = 0; c < (long)H * A; ++c) {
+        if (tb.pinned[c] || !sc.agent_mask[c / H]) continue;
+        const float ab = ws.alpha_bar[c / H / n];
+        ws.d_eps.col(c) += ws.d_x0.col(c) * (-std::sqrt(1 - ab) / std::sqrt(ab));
+    }
+    model.backward(ws.d_eps);
+    return L;
+}
+
+// =============================================================================================
+// Training loop (paper Alg. 1)
+// =============================================================================================
+
+// One row of the loss curve (written to <out>.csv).
+struct CurveRow {
+    long step = 0;
+    int n_curr = 0;
+    LossTerms train;     // smoothed over recent steps
+    double val_total = 0;
+};
+
+struct TrainReport {
+    long steps = 0;
+    double seconds = 0;
+    LossTerms last_train, last_val;
+};
+
+// The curriculum (SPEC 7): n_curr rises linearly from 1 to n_train_max, reaching it at
+// curriculum_end of training.
+inline int curriculum_agents(long step, const TrainConfig& tc) {
+    const double ramp = std::max(1.0, (double)tc.curriculum_end * tc.steps);
+    return std::min(tc.n_train_max, 1 + (int)(step / ramp * tc.n_train_max));
+}
+
+inline void save_model(const std::string& path, const MadbpModel& model, std::map<std::string, std::string> extra = {}) {
+    auto md = model.config.to_metadata();
+    for (auto& kv : extra) md[kv.first] = kv.second;
+    save_params(path, *model.params, md);
+}
+inline MadbpModel load_model(const std::string& path) {
+    SafeTensors st = load_safetensors(path);
+    MadbpModel model(ModelConfig::from_metadata(st.metadata, path));
+    read_param_tensors(st, *model.params);
+    model.set_training(false);
+    return model;
+}
+
+// Writes an SVG line plot of the loss curves (train total and validation total).
+inline void write_loss_svg(const std::string& path, const std::vector<CurveRow>& curve) {
+    if (curve.empty()) return;
+    std::vector<std::array<double, 3>> rows;
+    for (const CurveRow& c : curve) rows.push_back({(double)c.step, c.train.total, c.val_total});
+    double x_max = rows.back()[0], y_max = 0, y_min = 1e300;
+    for (auto& r : rows) for (int k = 1; k < 3; ++k) if (r[k] > 0) { y_max = std::max(y_max, r[k]); y_min = std::min(y_min, r[k]); }
+    if (!(y_max > 0)) return;
+    const double lo = std::log10(y_min), hi = std::log10(y_max) + 1e-9;
+    auto X = [&](double s) { return 60 + 520 * s / std::max(1.0, x_max); };
+    auto Y = [&](double v) { return 20 + 300 * (hi - std::log10(std::max(v, y_min))) / std::max(1e-9, hi - lo); };
+    std::string svg = "<svg xmlns='http://www.w3.org/2000/svg' width='600' height='360' font-family='sans-serif' font-size='11'>\n"
+                      "<rect width='600' height='360' fill='white'/>\n";
+    const char* colors[2] = {"#1f77b4", "#d62728"};
+    const char* names[2] = {"train loss", "validation loss"};
+    for (int k = 0; k < 2; ++k) {
+        svg += "<polyline fill='none' stroke='" + std::string(colors[k]) + "' points='";
+        for (auto& r : rows) if (r[k + 1] > 0) svg += std::to_string(X(r[0])) + "," + std::to_string(Y(r[k + 1])) + " ";
+        svg += "'/>\n<text x='" + std::to_string(420) + "' y='" + std::to_string(30 + 14 * k) + "' fill='" + colors[k] + "'>" + names[k] + "</text>\n";
+    }
+    char buf[256];
+    std::snprintf(buf, sizeof buf, "<text x='60' y='345'>step 0 .. %.0f (log-scale loss %.3g .. %.3g)</text>\n</svg>\n", x_max, y_min, y_max);
+    svg += buf;
+    write_file_atomic(path, std::vector<uint8_t>(svg.begin(), svg.end()));
+}
+
+// Trains `model` on `demos`; writes tc.out (the EMA weights, ready for DiffusionPlanner),
+// tc.out + ".train" (raw weights, Adam, EMA, RNG: what --resume reads), tc.out + ".csv"
+// and tc.out + ".svg" (loss curves). Deterministic for a seed on one machine.
+inline TrainReport train(const DemoSet& demos, MadbpModel& model, const TrainConfig& tc) {
+    const ModelConfig& mc = model.config;
+    if (demos.episodes.empty()) throw std::invalid_argument("train: the dataset has no episodes");
+    if (tc.batch < 1 || tc.steps < 1) throw std::invalid_argument("train: batch and steps must be >= 1");
+    if (tc.n_train_max > mc.n_max) throw std::invalid_argument("train: n_train_max exceeds the model's n_max");
+    if (mc.window == WindowMode::CT)
+        for (const Demonstration& d : demos.episodes)
+            if (d.steps + 1 > mc.horizon) throw std::invalid_argument("train: CT mode needs horizon >= episode frames (" + std::to_string(d.steps + 1) + ")");
+    // Split episodes into training and validation deterministically from the seed.
+    Rng split_rng(tc.seed ^ 0x5eed5eedull);
+    std::vector<int> train_eps, val_eps;
+    for (int e = 0; e < (int)demos.episodes.size(); ++e) (split_rng.uniform() < tc.val_fraction ? val_eps : train_eps).push_back(e);
+    if (train_eps.empty()) train_eps.swap(val_eps);
+    if (val_eps.empty()) val_eps = train_eps;
+    const std::vector<WindowRef> train_windows = make_windows(demos, train_eps, mc, tc.stride);
+    const std::vector<WindowRef> val_windows = make_windows(demos, val_eps, mc, tc.stride);
+
+    NoiseSchedule schedule(mc.diffusion_steps);
+    Adam adam;
+    adam.lr = tc.lr;
+    Ema ema;
+    ema.decay = tc.ema_decay;
+    Rng rng(tc.seed);
+    long step = 0;
+    std::vector<CurveRow> curve;
+    const std::string state_path = tc.out + ".train", csv_path = tc.out + ".csv";
+    if (tc.resume) {
+        SafeTensors st = load_safetensors(state_path);
+        ModelConfig saved = ModelConfig::from_metadata(st.metadata, state_path);
+        if (saved.to_metadata() != mc.to_metadata()) throw std::runtime_error(state_path + ": model config differs from this run's");
+        read_param_tensors(st, *model.params);
+        read_adam(st, model.params->size(), adam);
+        read_ema(st, model.params->size(), ema);
+        read_rng(st, "train.rng", rng);
+        step = adam.step;
+        std::ifstream csv(csv_path);
+        std::string line;
+        std::getline(csv, line);  // header
+        while (std::getline(csv, line)) {
+            CurveRow r;
+            if (std::sscanf(line.c_str(), "%ld,%d,%lf,%lf,%lf,%lf,%lf,%lf", &r.step, &r.n_curr, &r.train.total, &r.train.noise,
+                            &r.train.boundary, &r.train.temporal, &r.train.collision, &r.val_total) == 8 && r.step <= step)
+                curve.push_back(r);
+        }
+    }
+    if (ema.shadow.size() != model.params->size()) ema.shadow = model.params->value;
+
+    model.set_training(true);
+    TrainBatch tb, vb;
+    LossWorkspace ws;
+    TrainReport rep;
+    auto t_start = std::chrono::steady_clock::now();
+    ProgressLine progress("train", tc.steps, tc.quiet);
+    progress.done = step;
+    LossTerms smooth;
+    auto validate = [&]() {
+        // Fixed seeds: the same validation windows and noise every time.
+        Rng vrng(tc.seed + 777);
+        LossTerms sum;
+        for (int v = 0; v < tc.val_batches; ++v) {
+            make_train_batch(demos, val_windows, mc, tc, tc.n_train_max, vrng, vb);
+            LossTerms l = diffusion_loss(model, schedule, vb, tc, vrng, false, ws);
+            sum.noise += l.noise / tc.val_batches;
+            sum.boundary += l.boundary / tc.val_batches;
+            sum.temporal += l.temporal / tc.val_batches;
+            sum.collision += l.collision / tc.val_batches;
+            sum.total += l.total / tc.val_batches;
+        }
+        return sum;
+    };
+    auto save_state = [&]() {
+        // Model file: EMA weights (or raw weights before the EMA starts), eval-ready.
+        Vec raw = model.params->value;
+        if (step >= tc.ema_start) ema.copy_to(*model.params);
+        save_model(tc.out, model, {{"demonstrator", demos.demonstrator}, {"train.step", std::to_string(step)},
+                                   {"train.n_train_max", std::to_string(tc.n_train_max)}});
+        model.params->value = raw;
+        std::vector<NamedTensor> tensors = param_tensors(*model.params);
+        auto md = mc.to_metadata();
+        append_adam(adam, tensors, md);
+        append_ema(ema, tensors, md);
+        append_rng(rng, "train.rng", md);
+        save_safetensors(state_path, tensors, md);
+        std::string csv = "step,n_curr,train_total,train_noise,train_boundary,train_temporal,train_collision,val_total\n";
+        for (const CurveRow& r : curve) {
+            char buf[256];
+            std::snprintf(buf, sizeof buf, "%ld,%d,%.6g,%.6g,%.6g,%.6g,%.6g,%.6g\n", r.step, r.n_curr, r.train.total, r.train.noise,
+                          r.train.boundary, r.train.temporal, r.train.collision, r.val_total);
+            csv += buf;
+        }
+        write_file_atomic(csv_path, std::vector<uint8_t>(csv.begin(), csv.end()));
+        write_loss_svg(tc.out + ".svg", curve);
+    };
+    while (step < tc.steps) {
+        const int n_curr = curriculum_agents(step, tc);
+        make_train_batch(demos, train_windows, mc, tc, n_curr, rng, tb);
+        model.params->zero_grad();
+        LossTerms l = diffusion_loss(model, schedule, tb, tc, rng, true, ws);
+        if (!std::isfinite(l.total)) throw std::runtime_error("train: loss became non-finite at step " + std::to_string(step));
+        clip_grad_norm(*model.params, tc.clip);
+        adam.update(*model.params);
+        step++;
+        if (step == tc.ema_start) ema.shadow = model.params->value;
+        else if (step > tc.ema_start) ema.update(*model.params);
+        const double keep = step == 1 ? 0.0 : 0.98;
+        smooth.noise = keep * smooth.noise + (1 - keep) * l.noise;
+        smooth.boundary = keep * smooth.boundary + (1 - keep) * l.boundary;
+        smooth.temporal = keep * smooth.temporal + (1 - keep) * l.temporal;
+        smooth.collision = keep * smooth.collision + (1 - keep) * l.collision;
+        smooth.total = keep * smooth.total + (1 - keep) * l.total;
+        rep.last_train = l;
+        if (step % tc.log_every == 0 || step == tc.steps) {
+            model.set_training(false);  // validation uses the running BatchNorm statistics
+            rep.last_val = validate();
+            model.set_training(true);
+            curve.push_back({step, n_curr, smooth, rep.last_val.total});
+        }
+        if (step % tc.checkpoint_every == 0 || step == tc.steps) save_state();
+        char extra[96];
+        std::snprintf(extra, sizeof extra, "n_curr %d  loss %.4f", n_curr, smooth.total);
+        progress.tick(1, extra);
+    }
+    rep.steps = step;
+    rep.seconds = std::chrono::duration<double>(std::chrono::steady_clock::now() - t_start).count();
+    if (step >= tc.ema_start) ema.copy_to(*model.params);
+    model.set_training(false);
+    return rep;
+}
+
+}  // namespace madbp
+
+#endif  // MADBP_TRAIN_HPP
