@@ -781,6 +781,10 @@ struct StepModel {
     }
     // Force that makes the velocity after one step `v_target` (deadbeat), before clamping.
     Vec2 force_for_velocity(Vec2 v, Vec2 v_target) const { return (v_target - v * vv) / vu; }
+    // End-of-step velocity of steady motion covering `displacement` every step. It is not
+    // displacement/dt: within a step the velocity dips by drag and recovers under the force
+    // (0.32 units/s end-of-step for 0.03 per step with the defaults).
+    Vec2 steady_velocity(Vec2 displacement) const { return displacement / (pv + pu * (1 - vv) / vu); }
 };
 
 // =============================================================================================
@@ -863,138 +867,113 @@ inline Vec2 track_waypoint(Vec2 p, Vec2 v, Vec2 w1, Vec2 v_ref, const StepModel&
     return clamp_box(u, lim);
 }
 
-// A control-barrier-function filter. For every neighbour (agent within `range`, obstacle or
-// wall within `range`) with gap h = distance - (sum of radii + margin) and unit direction n
-// (from the neighbour to this agent), it requires the velocity after the step to close the
-// gap no faster than `rate * h`:
-//   agent pair:  n.(v_i' - v_j') >= -rate * h, shared reciprocally: agent i takes share
-//                s_ij of the correction its nominal action needs (s_ij = 0.5 by default;
-//                priorities change it), so when both comply the pair is safe;
-//   static:      n.v_i' >= -rate * h, all on agent i.
-// Each agent then takes the action closest to its nominal one under these half-planes and the
-// box |u_i| <= 1: an exact 2-D QP (detail::closest_feasible). When the constraints cannot all
-// hold it maximises the smallest margin instead. The filter never adds a goal-directed term:
-// with a nominal "hold position" it only ever pushes agents apart.
+// A control-barrier-function filter, solved for the whole team at once. For every pair of
+// agents closer than `range` (and every obstacle or wall surface within `range` of an agent),
+// with gap h = distance - (sum of radii + margin) and unit direction n from the neighbour to
+// the agent, the velocity after the step must not close the gap faster than `rate * h`:
+//   agent pair:  n.(v_i' - v_j') >= -rate * h
+//   static:      n.v_i'          >= -rate * h
+// With v' = vv v + vu u (StepModel) these are linear in the actions. The filter returns the
+// actions closest to the nominal ones, min sum_i w_i |u_i - u_nom_i|^2, under them and the box
+// |u| <= 1: a small convex QP solved by dual coordinate ascent (Hildreth's method), which
+// converges to the exact optimum when the constraints can hold. Weights w_i > 0 (default 1)
+// set priorities: a heavier agent deviates less and its partners make way. Because drag
+// removes 25% of the closing speed every step and rate * dt = 0.25, braking keeps the
+// constraints feasible unless a nominal action pushes hard into a jam; then the iteration
+// stops at its budget with the constraints nearly met (reported through `violated`).
+// The filter never adds a goal-directed term: with a "hold position" nominal it only ever
+// pushes agents apart.
 struct SafetyFilterParams {
     double margin = 0.03;         // gap kept between agents beyond touching, world units, >= 0
     double static_margin = 0.01;  // gap kept to obstacles and walls beyond touching, world units, >= 0
     double rate = 2.5;            // rate of the barrier, 1/s, in (0, 1/dt)
-    double range = 0.6;    // neighbours whose centres are within this distance count, world units
+    double range = 0.6;           // neighbours whose centres are within this distance count, world units
+    int max_sweeps = 300;         // budget of the QP iteration (sweeps over all constraints)
 };
 
 namespace detail {
-// Half-plane a.u >= b.
-struct HalfPlane { Vec2 a; double b; };
-
-// The point of the box |u_i| <= lim closest to `target` satisfying every half-plane, exactly,
-// by enumerating the candidates of a 2-D QP (the target, its projection on each line, each
-// pair of lines' intersection). When none is feasible, returns the candidate that maximises
-// the smallest normalized slack (a best-effort fallback). Returns whether it was feasible.
-inline bool closest_feasible(Vec2 target, std::vector<HalfPlane>& hp, double lim, Vec2* out) {
-    const double tol = 1e-9;
-    size_t m_agent = hp.size();
-    hp.push_back({{1, 0}, -lim});
-    hp.push_back({{-1, 0}, -lim});
-    hp.push_back({{0, 1}, -lim});
-    hp.push_back({{0, -1}, -lim});
-    auto slack = [&](Vec2 u) {  // smallest normalized slack over all half-planes
-        double s = 1e300;
-        for (const HalfPlane& h : hp) s = std::min(s, (dot(h.a, u) - h.b) / std::max(norm(h.a), 1e-12));
-        return s;
-    };
-    std::vector<Vec2> cand{target};
-    for (const HalfPlane& h : hp) {
-        double aa = dot(h.a, h.a);
-        if (aa > 1e-18) cand.push_back(target + h.a * ((h.b - dot(h.a, target)) / aa));
-    }
-    for (size_t i = 0; i < hp.size(); ++i)
-        for (size_t j = i + 1; j < hp.size(); ++j) {
-            double det = cross(hp[i].a, hp[j].a);
-            if (std::fabs(det) < 1e-12) continue;
-            cand.push_back({(hp[i].b * hp[j].a.y - hp[j].b * hp[i].a.y) / det, (hp[i].a.x * hp[j].b - hp[j].a.x * hp[i].b) / det});
+// One linear constraint a.u_i - a.u_j >= b (j = -1: a.u_i >= b).
+struct TeamConstraint { int i, j; Vec2 a; double b; double lambda = 0; };
+// Hildreth's method for min sum_i w_i |u_i - u0_i|^2 s.t. the constraints. Returns the
+// largest violation left.
+inline double solve_team_qp(std::vector<Vec2>& u, std::vector<TeamConstraint>& cons, const std::vector<double>& w,
+                            int max_sweeps) {
+    double worst = 0;
+    for (int sweep = 0; sweep < max_sweeps; ++sweep) {
+        worst = 0;
+        for (TeamConstraint& c : cons) {
+            double lhs = dot(c.a, u[c.i]) - (c.j >= 0 ? dot(c.a, u[c.j]) : 0.0);
+            double aa = dot(c.a, c.a) * (1 / w[c.i] + (c.j >= 0 ? 1 / w[c.j] : 0.0));
+            worst = std::max(worst, c.b - lhs);
+            double delta = std::max(-c.lambda, (c.b - lhs) / aa);
+            if (delta == 0) continue;
+            c.lambda += delta;
+            u[c.i] += c.a * (delta / w[c.i]);
+            if (c.j >= 0) u[c.j] -= c.a * (delta / w[c.j]);
         }
-    bool found = false;
-    double best = 1e300;
-    for (Vec2 c : cand) {
-        if (slack(c) < -tol) continue;
-        double d = dot(c - target, c - target);
-        if (d < best) { best = d; *out = c; found = true; }
+        if (worst < 1e-10) break;
     }
-    if (!found) {
-        // Infeasible: the box point with the largest worst-case slack over the agent's own
-        // constraints, searched over the candidates (clipped into the box) and a ring.
-        for (int k = 0; k < 32; ++k) cand.push_back({lim * std::cos(k * 0.19634954084936207), lim * std::sin(k * 0.19634954084936207)});
-        hp.resize(m_agent);
-        double best_slack = -1e300;
-        for (Vec2 c : cand) {
-            c = clamp_box(c, lim);
-            double s = slack(c) - 1e-9 * norm(c - target);  // ties: closer to the target
-            if (s > best_slack) { best_slack = s; *out = c; }
-        }
-    }
-    hp.resize(m_agent);
-    return found;
+    return worst;
 }
 }  // namespace detail
 
-// Filters `nominal` (one action per agent, in agents() order) and returns the safe actions.
-// `share[i][j]`-style priorities: `responsibility(i, j)` gives agent i's share of a pair's
-// correction (default 0.5 each; the two shares of a pair must add to 1).
+// Filters `nominal` (one action per agent, in agents() order) and returns safe actions in
+// the box. `weights`: per agent, > 0, empty = all 1. `violated`, when given, receives the
+// largest constraint violation left (0 when every constraint holds).
 inline std::vector<Vec2> safety_filter(const World& world, const std::vector<Vec2>& nominal, const SafetyFilterParams& prm,
-                                       const std::function<double(int, int)>& responsibility = nullptr,
-                                       int* infeasible = nullptr) {
+                                       const std::vector<double>& weights = {}, double* violated = nullptr) {
     const auto& ag = world.agents();
     const int n = (int)ag.size();
     MADBP_ASSERT((int)nominal.size() == n);
+    MADBP_ASSERT(weights.empty() || (int)weights.size() == n);
     StepModel m(world.config());
-    double r = world.config().radius, lim = world.config().max_action;
-    std::vector<Vec2> vnext(n), out(n);
-    for (int i = 0; i < n; ++i) vnext[i] = ag[i].vel * m.vv + clamp_box(nominal[i], lim) * m.vu;
-    int bad = 0;
-    std::vector<detail::HalfPlane> hp;
+    const double r = world.config().radius, lim = world.config().max_action;
+    std::vector<detail::TeamConstraint> cons;
     for (int i = 0; i < n; ++i) {
-        hp.clear();
-        Vec2 un = clamp_box(nominal[i], lim);
-        for (int j = 0; j < n; ++j) {
-            if (j == i) continue;
-            Vec2 d = ag[i].pos - ag[j].pos;
+        const Agent& a = ag[i];
+        for (int j = i + 1; j < n; ++j) {
+            Vec2 d = a.pos - ag[j].pos;
             double dist = norm(d);
             if (dist > prm.range) continue;
-            Vec2 nrm = dist > 1e-12 ? d / dist : Vec2{(i < j) ? -1.0 : 1.0, 0.0};
+            Vec2 nrm = dist > 1e-12 ? d / dist : Vec2{1, 0};
             double h = dist - 2 * r - prm.margin;
-            double need = -prm.rate * h - dot(nrm, vnext[i] - vnext[j]);  // > 0: nominal closes too fast
-            double share = responsibility ? responsibility(i, j) : 0.5;
-            // n.u_i >= n.u_nom + share * need / vu  (the agent's part of the correction)
-            hp.push_back({nrm, dot(nrm, un) + share * need / m.vu});
+            // vu n.(u_i - u_j) >= -rate h - vv n.(v_i - v_j)
+            cons.push_back({i, j, nrm, (-prm.rate * h - m.vv * dot(nrm, a.vel - ag[j].vel)) / m.vu});
         }
-        // Walls and obstacles: the nearest surface point of each within range.
-        const Map& map = world.map();
-        Vec2 p = ag[i].pos, v = ag[i].vel;
         auto add_static = [&](double dist_to_surface, Vec2 away) {
             if (dist_to_surface > prm.range) return;
             double h = dist_to_surface - r - prm.static_margin;
-            // n.(vv v + vu u) >= -rate h
-            hp.push_back({away, (-prm.rate * h - m.vv * dot(away, v)) / m.vu});
+            cons.push_back({i, -1, away, (-prm.rate * h - m.vv * dot(away, a.vel)) / m.vu});
         };
+        const Map& map = world.map();
         double hs = map.half_size;
-        add_static(hs - p.x, {-1, 0});
-        add_static(p.x + hs, {1, 0});
-        add_static(hs - p.y, {0, -1});
-        add_static(p.y + hs, {0, 1});
+        add_static(hs - a.pos.x, {-1, 0});
+        add_static(a.pos.x + hs, {1, 0});
+        add_static(hs - a.pos.y, {0, -1});
+        add_static(a.pos.y + hs, {0, 1});
         for (const Disc& o : map.discs) {
-            Vec2 d = p - o.c;
+            Vec2 d = a.pos - o.c;
             double dist = norm(d);
             add_static(dist - o.r, dist > 1e-12 ? d / dist : Vec2{1, 0});
         }
         for (const Box& b : map.boxes) {
             Vec2 away;
-            double dist = box_distance(b, p, &away);
+            double dist = box_distance(b, a.pos, &away);
             add_static(dist, away);
         }
-        if (!detail::closest_feasible(un, hp, lim, &out[i])) bad++;
+        // The box |u| <= lim.
+        cons.push_back({i, -1, {1, 0}, -lim});
+        cons.push_back({i, -1, {-1, 0}, -lim});
+        cons.push_back({i, -1, {0, 1}, -lim});
+        cons.push_back({i, -1, {0, -1}, -lim});
     }
-    if (infeasible) *infeasible = bad;
-    return out;
+    std::vector<Vec2> u(n);
+    for (int i = 0; i < n; ++i) u[i] = clamp_box(nominal[i], lim);
+    std::vector<double> w = weights.empty() ? std::vector<double>(n, 1.0) : weights;
+    double left = detail::solve_team_qp(u, cons, w, prm.max_sweeps);
+    if (violated) *violated = left;
+    for (Vec2& x : u) x = clamp_box(x, lim);
+    return u;
 }
 
 // =============================================================================================
@@ -1082,7 +1061,6 @@ public:
         }
         StepModel model(world.config());
         int k = world.t() - plan_t0_;
-        double dt = world.config().dt;
         std::vector<Vec2> u(world.size());
         for (size_t i = 0; i < plan_.ids.size(); ++i) {
             const Agent& a = world.agents()[world.index_of(plan_.ids[i])];
@@ -1090,7 +1068,7 @@ public:
             int last = (int)w.size() - 1;
             Vec2 w1 = w[std::min(k, last)];
             // Planned velocity at w1: toward the next waypoint; zero once the window ends.
-            Vec2 v_ref = k + 1 <= last ? (w[k + 1] - w1) / dt : Vec2{0, 0};
+            Vec2 v_ref = k + 1 <= last ? model.steady_velocity(w[k + 1] - w1) : Vec2{0, 0};
             u[world.index_of(plan_.ids[i])] = track_waypoint(a.pos, a.vel, w1, v_ref, model, cfg_.tracker, world.config().max_action);
         }
         if (cfg_.safety_filter) u = safety_filter(world, u, cfg_.filter);
@@ -1310,8 +1288,8 @@ inline std::vector<int> wavefront(const ClearanceGrid& cg, int goal_cell, double
 //     is cheaper), and arriving at the goal is charged for later reservations there.
 // Priorities: agents still travelling before agents that have arrived (those step aside and
 // come back), then the longer wavefront distance at the start first, then the id. The plan
-// is tracked with the SPEC 3.2 tracker and made safe by the safety filter, in which the
-// higher-priority agent of a pair takes the smaller share (`priority_share`) of a correction.
+// is tracked with the SPEC 3.2 tracker and made safe by the safety filter, in which a
+// higher-priority agent weighs more (deviates less; lower ones make way).
 struct ExpertParams {
     double cell = 0.036;          // planning cell, world units (distance per step at cruise)
     double inflate = 0.13;        // clearance kept from obstacles and walls (radius + 0.03), world units
@@ -1322,7 +1300,7 @@ struct ExpertParams {
     double replan_error = 0.1;    // replan early when an agent is this far from its waypoint, world units
     int extra_horizon = 20;       // plans may run this many steps past the episode's step limit
     int max_expansions = 200000;  // A* budget per agent and plan
-    double priority_share = 0.25; // share of a pair's correction taken by the higher-priority agent, [0, 0.5]
+    double priority_weight = 4;   // safety-filter weight of the highest-priority agent (the lowest has 1), >= 1
     TrackerParams tracker;
     SafetyFilterParams filter;
 };
@@ -1345,18 +1323,18 @@ public:
         StepModel model(world.config());
         int k = world.t() - plan_t0_;
         std::vector<Vec2> u(n);
-        std::vector<int> rank(n);
+        std::vector<double> weight(n);
         for (int i = 0; i < n; ++i) {
             int pi = plan_index(ag[i].id);
             const std::vector<Vec2>& w = plan_.waypoints[pi];
             int last = (int)w.size() - 1;
             Vec2 w1 = w[std::min(k, last)];
-            Vec2 v_ref = k + 1 <= last ? (w[k + 1] - w1) / world.config().dt : Vec2{0, 0};
+            Vec2 v_ref = k + 1 <= last ? model.steady_velocity(w[k + 1] - w1) : Vec2{0, 0};
             u[i] = track_waypoint(ag[i].pos, ag[i].vel, w1, v_ref, model, prm_.tracker, world.config().max_action);
-            rank[i] = rank_[pi];
+            // Rank 0 (highest priority) weighs priority_weight, the last rank 1.
+            weight[i] = n > 1 ? 1 + (prm_.priority_weight - 1) * (n - 1 - rank_[pi]) / (n - 1) : 1.0;
         }
-        auto share = [&](int i, int j) { return rank[i] < rank[j] ? prm_.priority_share : 1 - prm_.priority_share; };
-        return safety_filter(world, u, prm_.filter, share);
+        return safety_filter(world, u, prm_.filter, weight);
     }
     double plan_ms() const override { return plans_ ? total_ms_ / plans_ : 0; }
     // The current plan: waypoints of every agent from the step it was made.

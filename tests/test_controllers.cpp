@@ -1,0 +1,365 @@
+// Tests of the controllers (SPEC 3.1, 3.2, 3.5, 3.6), plans and their execution, episodes,
+// evaluation and rendering.
+#include <doctest/doctest.h>
+
+#include "madbp_sim.hpp"
+
+using namespace madbp;
+
+// f(u) = |u|^2 + w max(0, a + b.u)^2, the CLF-QP objective with the slack eliminated.
+static double clf_cost(double a, Vec2 b, double w, Vec2 u) {
+    double c = std::max(0.0, a + dot(b, u));
+    return dot(u, u) + w * c * c;
+}
+
+TEST_CASE("CLF-QP: the closed-form / active-set answer matches brute force over a fine grid") {
+    Rng rng(7);
+    int on_boundary = 0, inside = 0, zero = 0;
+    for (int trial = 0; trial < 300; ++trial) {
+        double a = rng.uniform(-1, 3) * (trial % 3 == 0 ? 10 : 1);
+        Vec2 b{rng.uniform(-2, 2), rng.uniform(-2, 2)};
+        if (trial % 7 == 0) b.x = 0;  // degenerate direction
+        double w = trial % 2 ? 100 : rng.uniform(0.5, 50);
+        Vec2 u = clf_qp_solve(a, b, w);
+        REQUIRE(std::fabs(u.x) <= 1.0);
+        REQUIRE(std::fabs(u.y) <= 1.0);
+        // Brute force on a 0.005 grid, then refine around the best cell on a 1e-4 grid.
+        Vec2 best{0, 0};
+        double best_f = clf_cost(a, b, w, best);
+        for (int i = -200; i <= 200; ++i)
+            for (int j = -200; j <= 200; ++j) {
+                Vec2 c{i * 0.005, j * 0.005};
+                double f = clf_cost(a, b, w, c);
+                if (f < best_f) { best_f = f; best = c; }
+            }
+        Vec2 coarse = best;
+        for (int i = -50; i <= 50; ++i)
+            for (int j = -50; j <= 50; ++j) {
+                Vec2 c = clamp_box(coarse + Vec2{i * 1e-4, j * 1e-4}, 1.0);
+                double f = clf_cost(a, b, w, c);
+                if (f < best_f) { best_f = f; best = c; }
+            }
+        double f_qp = clf_cost(a, b, w, u);
+        CHECK(f_qp <= best_f + 1e-9);
+        // f is 2-strongly convex, so |u - u*|^2 <= f(best) - f(u*): the grid point pins u down.
+        CHECK(dot(u - best, u - best) <= best_f - f_qp + 1e-9);
+        if (norm(u) == 0) zero++;
+        else if (std::fabs(u.x) == 1.0 || std::fabs(u.y) == 1.0) on_boundary++;
+        else inside++;
+    }
+    // The trials exercise all three cases of the solver.
+    CHECK(zero > 10);
+    CHECK(on_boundary > 10);
+    CHECK(inside > 10);
+}
+
+TEST_CASE("CLF-QP: tuned constants bring a lone agent home; VMAS's do not within 100 steps") {
+    int tuned = 0, vmas = 0;
+    ClfQpParams v;
+    v.c_ev = 0.5;
+    v.c_vv = 1.0;
+    v.eps = 0.2;
+    v.drag_in_lfv = false;
+    for (int seed = 0; seed < 20; ++seed) {
+        World w1 = make_random_world("empty", 1, seed), w2 = w1;
+        ClfQp tuned_policy, vmas_policy(v);
+        tuned += run_episode(w1, tuned_policy).success;
+        vmas += run_episode(w2, vmas_policy).success;
+    }
+    CHECK(tuned == 20);
+    CHECK(vmas == 0);
+}
+
+TEST_CASE("StepModel is the world's contact-free step, exactly") {
+    World w;
+    int id = w.add_agent({0, 0}, {0.5, 0.5});
+    w.set_state(id, {0.1, -0.2}, {0.3, -0.1});
+    StepModel m(w.config());
+    CHECK(m.pv == doctest::Approx(0.075));
+    CHECK(m.pu == doctest::Approx(0.0075));
+    CHECK(m.vv == doctest::Approx(0.75));
+    CHECK(m.vu == doctest::Approx(0.1));
+    Vec2 u{0.6, -0.9};
+    Vec2 p = w.agent(id).pos + w.agent(id).vel * m.pv + u * m.pu, v = w.agent(id).vel * m.vv + u * m.vu;
+    w.step({u});
+    CHECK(w.agent(id).pos.x == doctest::Approx(p.x).epsilon(1e-12));
+    CHECK(w.agent(id).pos.y == doctest::Approx(p.y).epsilon(1e-12));
+    CHECK(w.agent(id).vel.x == doctest::Approx(v.x).epsilon(1e-12));
+}
+
+TEST_CASE("tracker: follows a straight line at 0.3 units/s with a small error") {
+    World w;
+    int id = w.add_agent({-0.9, -0.5}, {0.9, 0.5});
+    StepModel m(w.config());
+    TrackerParams tp;
+    double worst = 0;
+    for (int t = 0; t < 50; ++t) {
+        auto ref = [&](int k) { return Vec2{-0.9 + 0.03 * k, -0.5}; };
+        const Agent& a = w.agent(id);
+        w.step({track_waypoint(a.pos, a.vel, ref(t + 1), m.steady_velocity({0.03, 0}), m, tp)});
+        if (t >= 20) worst = std::max(worst, norm(w.agent(id).pos - ref(t + 1)));
+        if (t == 3) CHECK(norm(w.agent(id).pos - ref(t + 1)) > 0.03);  // from rest it lags (force limit)
+    }
+    CHECK(worst < 0.002);  // then catches up and holds the line
+    CHECK(m.steady_velocity({0.03, 0}).x == doctest::Approx(0.32));
+}
+
+TEST_CASE("LinePlanner: straight waypoints toward the goal, stopping there") {
+    World w;
+    w.add_agent({0, 0}, {0.1, 0});
+    LinePlanner lp;
+    lp.horizon = 6;
+    lp.speed = 0.3;
+    Plan p = lp(w);
+    REQUIRE(p.waypoints.size() == 1);
+    REQUIRE(p.waypoints[0].size() == 6);
+    CHECK(p.waypoints[0][0].x == doctest::Approx(0.03));
+    CHECK(p.waypoints[0][2].x == doctest::Approx(0.09));
+    CHECK(p.waypoints[0][3].x == doctest::Approx(0.1));
+    CHECK(p.waypoints[0][5].x == doctest::Approx(0.1));
+    CHECK(p.waypoints[0][5].y == 0.0);
+}
+
+// Eight agents on a circle, each heading for the antipode: the densest classic crossing.
+static World crowded_circle(int n = 8, double radius = 0.8) {
+    World w;
+    for (int i = 0; i < n; ++i) {
+        double a = 2 * M_PI * i / n;
+        w.add_agent({radius * std::cos(a), radius * std::sin(a)}, {-radius * std::cos(a), -radius * std::sin(a)});
+    }
+    return w;
+}
+
+TEST_CASE("safety filter: agents never overlap in a crowded crossing (and do without it)") {
+    for (bool filter : {true, false}) {
+        World w = crowded_circle();
+        FollowerConfig fc;
+        fc.safety_filter = filter;
+        PlanFollower follower(LinePlanner{}, fc);
+        double closest = 1e9;
+        while (!w.done()) {
+            w.step(follower.act(w));
+            for (int i = 0; i < w.size(); ++i)
+                for (int j = i + 1; j < w.size(); ++j) closest = std::min(closest, norm(w.agents()[i].pos - w.agents()[j].pos));
+        }
+        if (filter) {
+            CHECK(w.metrics().agent_collisions == 0);
+            CHECK(closest >= 0.2);
+        } else {
+            CHECK(w.metrics().agent_collisions > 0);
+        }
+    }
+    // Random nominal actions pushing agents at each other, obstacles and walls.
+    for (int seed = 0; seed < 10; ++seed) {
+        World w = make_random_world("obstacles", 8, seed);
+        Rng rng(seed);
+        SafetyFilterParams sp;
+        for (int t = 0; t < 100; ++t) {
+            std::vector<Vec2> nominal;
+            for (const Agent& a : w.agents()) {
+                Vec2 toward_centre = normalized(Vec2{0, 0} - a.pos) * 1.5;
+                nominal.push_back(toward_centre + Vec2{rng.uniform(-1, 1), rng.uniform(-1, 1)});
+            }
+            w.step(safety_filter(w, nominal, sp));
+        }
+        CHECK(w.metrics().agent_collisions == 0);
+        CHECK(w.metrics().obstacle_collisions == 0);
+    }
+}
+
+TEST_CASE("safety filter: leaves safe nominal actions alone and never steers toward goals") {
+    World w;
+    w.add_agent({-0.5, 0}, {0.5, 0});
+    w.add_agent({0.5, 0.5}, {-0.5, -0.5});
+    std::vector<Vec2> nominal{{0.3, -0.2}, {-0.1, 0.4}};
+    auto out = safety_filter(w, nominal, SafetyFilterParams{});
+    CHECK(out[0].x == doctest::Approx(0.3));
+    CHECK(out[1].y == doctest::Approx(0.4));
+    // A "stay here" plan: the team holds position and never reaches its goals.
+    for (const char* map : {"empty", "obstacles", "barrier"})
+        for (int seed = 0; seed < 10; ++seed) {
+            World world = make_random_world(map, 6, seed);
+            std::vector<Vec2> starts;
+            for (const Agent& a : world.agents()) starts.push_back(a.pos);
+            Planner stay = [](const World& wd) {
+                Plan p;
+                for (const Agent& a : wd.agents()) {
+                    p.ids.push_back(a.id);
+                    p.waypoints.push_back(std::vector<Vec2>(16, a.pos));
+                }
+                return p;
+            };
+            PlanFollower follower(stay);
+            int reached = 0;
+            while (!world.done()) {
+                world.step(follower.act(world));
+                for (const Agent& a : world.agents()) reached += world.at_goal(a);
+            }
+            CHECK(reached == 0);
+            CHECK_FALSE(world.metrics().success);
+            for (int i = 0; i < world.size(); ++i) CHECK(norm(world.agents()[i].pos - starts[i]) < 0.05);
+        }
+}
+
+TEST_CASE("PlanFollower: replans every m steps and on joins and leaves; bad plans are errors") {
+    World w = make_random_world("empty", 3, 1);
+    FollowerConfig fc;
+    fc.replan_every = 4;
+    int calls = 0;
+    PlanFollower f([&](const World& wd) { calls++; return LinePlanner{}(wd); }, fc);
+    for (int t = 0; t < 10; ++t) w.step(f.act(w));
+    CHECK(calls == 3);  // steps 0, 4, 8
+    w.add_agent({0.9, -0.9}, {-0.9, 0.9});
+    w.step(f.act(w));
+    CHECK(calls == 4);
+    w.remove_agent(0);
+    w.step(f.act(w));
+    CHECK(calls == 5);
+    CHECK(f.plans() == 5);
+    CHECK(f.plan().ids.size() == 3);
+
+    auto bad = [&](std::function<void(Plan&)> spoil) {
+        World wd = make_random_world("empty", 2, 0);
+        PlanFollower pf([spoil](const World& x) { Plan p = LinePlanner{}(x); spoil(p); return p; });
+        return pf.act(wd);
+    };
+    CHECK_THROWS_WITH_AS(bad([](Plan& p) { p.ids[1] = p.ids[0]; }), doctest::Contains("duplicate agent id"), std::invalid_argument);
+    CHECK_THROWS_WITH_AS(bad([](Plan& p) { p.ids.pop_back(); p.waypoints.pop_back(); }), doctest::Contains("covers 1 of 2"), std::invalid_argument);
+    CHECK_THROWS_WITH_AS(bad([](Plan& p) { p.waypoints[0][3].y = NAN; }), doctest::Contains("not finite"), std::invalid_argument);
+    CHECK_THROWS_WITH_AS(bad([](Plan& p) { p.ids[0] = 99; }), doctest::Contains("not in the world"), std::invalid_argument);
+    CHECK_THROWS_WITH_AS(bad([](Plan& p) { p.waypoints[1].clear(); }), doctest::Contains("no waypoints"), std::invalid_argument);
+    FollowerConfig zero;
+    zero.replan_every = 0;
+    CHECK_THROWS_AS(PlanFollower(LinePlanner{}, zero), std::invalid_argument);
+}
+
+TEST_CASE("wavefront: steps around a wall, unreachable behind a closed one") {
+    Map m;
+    m.boxes.push_back({{-1.2, -0.05}, {0.6, 0.05}});  // gap from 0.6 to 1.2 on the right
+    ClearanceGrid g(m, 0.1);
+    REQUIRE(g.n == 24);
+    std::vector<int> steps = wavefront(g, g.index({-0.8, 0.6}), 0.13);
+    int below = steps[g.index({-0.8, -0.6})];
+    // Straight through the wall would be 12 steps; around the end it is much longer.
+    CHECK(below > 25);
+    CHECK(steps[g.index({-0.8, 0.6})] == 0);
+    CHECK(steps[g.index({-0.8, 0.0})] == -1);  // inside the wall
+    Map closed;
+    closed.boxes.push_back({{-1.2, -0.05}, {1.2, 0.05}});
+    ClearanceGrid gc(closed, 0.1);
+    CHECK(wavefront(gc, gc.index({0, 0.6}), 0.13)[gc.index({0, -0.6})] == -1);
+}
+
+TEST_CASE("guided expert: solves random problems on every map with few collisions, deterministically") {
+    struct Cell { const char* map; int n; };
+    for (Cell c : {Cell{"empty", 6}, Cell{"obstacles", 4}, Cell{"barrier", 4}}) {
+        int wins = 0;
+        long collisions = 0;
+        for (int seed = 0; seed < 8; ++seed) {
+            World w = make_random_world(c.map, c.n, 500 + seed);
+            GuidedExpert expert(w.map());
+            EpisodeResult r = run_episode(w, expert);
+            wins += r.success;
+            collisions += r.collisions();
+        }
+        INFO(c.map << " n=" << c.n);
+        CHECK(wins >= 7);
+        CHECK(collisions <= 2);
+    }
+    World a = make_random_world("barrier", 3, 3), b = a;
+    GuidedExpert ea(a.map()), eb(b.map());
+    EpisodeResult ra = run_episode(a, ea), rb = run_episode(b, eb);
+    CHECK(ra.steps == rb.steps);
+    CHECK(a.agents()[2].pos.x == b.agents()[2].pos.x);
+}
+
+TEST_CASE("guided expert: a four-robot swap through a gap, and a team that changes mid-episode") {
+    const char* text =
+        "madbp-scene 1\n"
+        "box -1.2 -0.05 -0.25 0.05\n"
+        "box 0.25 -0.05 1.2 0.05\n"
+        "agent -0.6 0.6 0.6 -0.6\n"
+        "agent 0.6 -0.6 -0.6 0.6\n"
+        "agent 0.6 0.6 -0.6 -0.6\n"
+        "agent -0.6 -0.6 0.6 0.6\n";
+    World w = make_world(parse_scene(text));
+    GuidedExpert expert(w.map());
+    EpisodeResult r = run_episode(w, expert);
+    CHECK(r.success);
+    CHECK(r.collisions() == 0);
+    // Join at step 10, leave at step 20: success is judged on the agents present.
+    World d = make_random_world("obstacles", 3, 4);
+    GuidedExpert ed(d.map());
+    EpisodeResult rd = run_episode(d, ed, false, [](World& x) {
+        if (x.t() == 10) x.add_agent({0.0, -1.0}, {0.0, 1.0});
+        if (x.t() == 20) x.remove_agent(0);
+    });
+    CHECK(rd.success);
+    CHECK(rd.agents == 3);
+    CHECK(d.index_of(3) >= 0);
+    CHECK(rd.steps > 20);
+}
+
+TEST_CASE("evaluate: episode i uses seed S+i; success, its standard error, steps") {
+    EvalConfig c;
+    c.map = "empty";
+    c.agents = 3;
+    c.episodes = 4;
+    c.seed = 10;
+    c.quiet = true;
+    int made = 0;
+    std::vector<uint64_t> seeds;
+    EvalResult r = evaluate(c, [&](const World&, uint64_t seed) {
+        made++;
+        seeds.push_back(seed);
+        return std::make_unique<ClfQp>();
+    });
+    CHECK(made == 4);
+    std::sort(seeds.begin(), seeds.end());
+    CHECK(seeds == std::vector<uint64_t>{10, 11, 12, 13});
+    int wins = 0;
+    double steps = 0;
+    for (int e = 0; e < 4; ++e) {
+        World w = make_random_world("empty", 3, 10 + e);
+        ClfQp p;
+        EpisodeResult one = run_episode(w, p);
+        CHECK(one.steps == r.runs[e].steps);
+        wins += one.success;
+        steps += one.success ? one.steps : 0;
+    }
+    CHECK(r.success == doctest::Approx(wins / 4.0));
+    CHECK(r.success_se == doctest::Approx(std::sqrt(r.success * (1 - r.success) / 4)));
+    if (wins) CHECK(r.steps == doctest::Approx(steps / wins));
+    c.map = "swamp";
+    CHECK_THROWS_AS(evaluate(c, [](const World&, uint64_t) { return std::make_unique<ClfQp>(); }), std::invalid_argument);
+    c.map = "empty";
+    c.episodes = 0;
+    CHECK_THROWS_AS(evaluate(c, [](const World&, uint64_t) { return std::make_unique<ClfQp>(); }), std::invalid_argument);
+}
+
+TEST_CASE("render: static and animated SVG hold the map, goals, tracks and collisions") {
+    World w = make_random_world("obstacles", 3, 2);
+    FollowerConfig fc;
+    fc.safety_filter = false;
+    PlanFollower f(LinePlanner{}, fc);
+    EpisodeResult r = run_episode(w, f, true);
+    REQUIRE(r.log.frames.size() == (size_t)w.t() + 1);
+    auto count = [](const std::string& s, const std::string& what) {
+        size_t k = 0;
+        for (size_t pos = s.find(what); pos != std::string::npos; pos = s.find(what, pos + 1)) k++;
+        return k;
+    };
+    SvgOptions opt;
+    opt.title = "a <title> & more";
+    std::string svg = render_svg(r.log, opt);
+    CHECK(svg.rfind("<svg", 0) == 0);
+    CHECK(count(svg, "<polyline") == 3);
+    CHECK(count(svg, "stroke-dasharray") == 3);     // goals
+    CHECK(count(svg, "<circle") == 5 + 3 + 6);      // obstacles, goals, start and end discs
+    CHECK(count(svg, "stroke=\"red\"") == (size_t)r.collisions());
+    CHECK(svg.find("&lt;title> &amp; more") != std::string::npos);
+    opt.animate = true;
+    std::string anim = render_svg(r.log, opt);
+    CHECK(count(anim, "<animate ") == 9);
+    CHECK(anim.find("repeatCount=\"indefinite\"") != std::string::npos);
+}
