@@ -57,9 +57,19 @@
 #define EIGEN_STACK_ALLOCATION_LIMIT (1 << 20)
 #endif
 
+// GCC 12 with AVX-512 reports false "may be used uninitialized" warnings inside the compiler's
+// own intrinsics headers when Eigen's kernels are inlined; silence them for those headers only.
+#if defined(__GNUC__) && !defined(__clang__)
+#pragma GCC diagnostic push
+#pragma GCC diagnostic ignored "-Wmaybe-uninitialized"
+#pragma GCC diagnostic ignored "-Wuninitialized"
+#endif
 #include "madbp_sim.hpp"
 
 #include <Eigen/Dense>
+#if defined(__GNUC__) && !defined(__clang__)
+#pragma GCC diagnostic pop
+#endif
 
 #include <algorithm>
 #include <cerrno>
@@ -1244,6 +1254,7 @@ inline SafeTensors parse_safetensors(const uint8_t* data, size_t size, const std
             }
             continue;
         }
+        if (key.empty()) fail("empty tensor name in the header");
         const std::string where = "tensor '" + key + "'";
         if (v.type != JsonValue::Object) fail(where + " is not an object");
         const JsonValue *dtype = nullptr, *shape = nullptr, *offsets = nullptr;
