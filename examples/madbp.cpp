@@ -133,7 +133,9 @@ int cmd_eval(Args& a) {
             "                    the method's own randomness\n"
             "  --no-filter       turn the safety filter off (line and planners)\n"
             "  --replan M        steps executed per plan (default 8)\n"
-            "  --threads T       episodes in parallel (default 1)\n"
+            "  --threads T       episodes in parallel (default 1; results do not depend on it)\n"
+            "  --half-size H     half-size of random worlds (default 1.2; 2.4 = twice the side)\n"
+            "  --max-steps N     episode step limit (default 100)\n"
             "  --json            one JSON object per cell instead of the table\n"
             "Columns: method, map, n_train, n, episodes, success, success_se, collisions (per\n"
             "episode), steps (mean of successful episodes), plan_ms (mean per plan).\n",
@@ -151,6 +153,8 @@ int cmd_eval(Args& a) {
     setup.filter = !a.flag("--no-filter");
     setup.replan = (int)a.integer("--replan", 8, 1, 1000);
     int threads = (int)a.integer("--threads", 1, 1, 256);
+    double half_size = a.real("--half-size", 1.2, 0.6, 100);
+    int max_steps = (int)a.integer("--max-steps", 100, 1, 1000000);
     auto all = methods();
     const Method& method = find_method(all, method_name);
     madbp::Scene scene;
@@ -184,6 +188,8 @@ int cmd_eval(Args& a) {
             c.episodes = episodes;
             c.seed = seed;
             c.threads = threads;
+            c.half_size = half_size;
+            c.world.max_steps = max_steps;
             c.scene = scene_path.empty() ? nullptr : &scene;
             madbp::EvalResult r = madbp::evaluate(c, spec.factory);
             if (json) {
@@ -208,10 +214,12 @@ int cmd_eval(Args& a) {
 
 // Runs one recorded episode and writes its SVG; shared by render and demo.
 int render_episode(const Method& method, Args& a, MethodSetup setup, const madbp::Scene* scene, uint64_t seed,
-                   const std::string& out, bool animate, bool json) {
+                   const std::string& out, bool animate, bool json, double half_size = 1.2, int max_steps = 100) {
     MethodSpec spec = method.make(a, setup);
     a.finish();
-    madbp::World world = scene ? madbp::make_world(*scene) : madbp::make_random_world(setup.map, setup.agents, seed);
+    madbp::WorldConfig wc;
+    wc.max_steps = max_steps;
+    madbp::World world = scene ? madbp::make_world(*scene, wc) : madbp::make_random_world(setup.map, setup.agents, seed, half_size, wc);
     auto policy = spec.factory(world, seed);
     madbp::EpisodeResult r = madbp::run_episode(world, *policy, true);
     madbp::SvgOptions opt;
@@ -241,7 +249,7 @@ int cmd_render(Args& a) {
             "  --scene FILE   a fixed problem instead of a random one\n"
             "  --out FILE     output (default episode.svg)\n"
             "  --animate      an animated SVG that plays the episode\n"
-            "  --no-filter, --replan M   as for eval\n"
+            "  --no-filter, --replan M, --half-size H, --max-steps N   as for eval\n"
             "  --json         print the result as JSON\n",
             method_list().c_str());
         return 0;
@@ -256,13 +264,15 @@ int cmd_render(Args& a) {
     uint64_t seed = (uint64_t)a.integer("--seed", 0, 0);
     std::string scene_path = a.str("--scene", ""), out = a.str("--out", "episode.svg");
     bool animate = a.flag("--animate"), json = a.flag("--json");
+    double half_size = a.real("--half-size", 1.2, 0.6, 100);
+    int max_steps = (int)a.integer("--max-steps", 100, 1, 1000000);
     madbp::Scene scene;
     if (!scene_path.empty()) {
         scene = madbp::load_scene(scene_path);
         setup.map = "scene";
         setup.agents = (int)scene.starts.size();
     }
-    return render_episode(method, a, setup, scene_path.empty() ? nullptr : &scene, seed, out, animate, json);
+    return render_episode(method, a, setup, scene_path.empty() ? nullptr : &scene, seed, out, animate, json, half_size, max_steps);
 }
 
 int cmd_demo(Args& a) {
@@ -283,8 +293,10 @@ int cmd_demo(Args& a) {
     setup.map = "barrier";
     setup.agents = 4;
     std::string anim = out.size() > 4 && out.substr(out.size() - 4) == ".svg" ? out.substr(0, out.size() - 4) + "-anim.svg" : out + "-anim.svg";
-    render_episode(find_method(all, "expert"), a, setup, nullptr, seed, anim, true, false);
-    return render_episode(find_method(all, "expert"), a, setup, nullptr, seed, out, false, json);
+    int rc = render_episode(find_method(all, "expert"), a, setup, nullptr, seed, out, false, json);
+    render_episode(find_method(all, "expert"), a, setup, nullptr, seed, anim, true, json);
+    if (!json) std::printf("open %s (picture) or %s (animation) in a browser\n", out.c_str(), anim.c_str());
+    return rc;
 }
 
 int cmd_bench(Args& a) {
