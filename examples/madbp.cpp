@@ -363,6 +363,10 @@ const std::vector<Subcommand>& subcommands() {
         {"eval", "success / collisions / steps of a method over seeded episodes", cmd_eval},
         {"render", "one episode drawn as (animated) SVG", cmd_render},
         {"bench", "world stepping speed (and --nn kernels when built in)", cmd_bench},
+#ifdef MADBP_HAVE_NN_METHODS
+        {"collect", "record demonstrations for training", cmd_collect},
+        {"train", "train the MA-DBP model", cmd_train},
+#endif
     };
     return s;
 }
