@@ -51,11 +51,33 @@ using namespace madbp_cli;
 
 namespace {
 
+std::vector<std::string> split(const std::string& s) {
+    std::vector<std::string> out;
+    std::stringstream ss(s);
+    for (std::string item; std::getline(ss, item, ',');)
+        if (!item.empty()) out.push_back(item);
+    if (out.empty()) throw std::invalid_argument("empty list '" + s + "'");
+    return out;
+}
+
 std::vector<Method> methods() {
     std::vector<Method> m;
-    m.push_back({"clfqp", "CLF-QP (SPEC 3.1): per agent, ignores others and obstacles",
-                 [](Args&, const MethodSetup&) {
-                     return MethodSpec{[](const madbp::World&, uint64_t) { return std::make_unique<madbp::ClfQp>(); }};
+    m.push_back({"clfqp",
+                 "CLF-QP (SPEC 3.1): per agent, ignores others and obstacles;\n"
+                 "                    --clf C_EV,C_VV,EPS (default 1,0.2,3), --clf-no-drag (VMAS's LfV)",
+                 [](Args& a, const MethodSetup&) {
+                     madbp::ClfQpParams p;
+                     std::vector<std::string> c = split(a.str("--clf", "1,0.2,3"));
+                     if (c.size() != 3) throw std::invalid_argument("--clf: expected C_EV,C_VV,EPS, e.g. 1,0.2,3");
+                     double* dst[3] = {&p.c_ev, &p.c_vv, &p.eps};
+                     for (int k = 0; k < 3; ++k) {
+                         size_t pos = 0;
+                         try { *dst[k] = std::stod(c[k], &pos); } catch (...) { pos = 0; }
+                         if (pos != c[k].size() || !(*dst[k] >= 0) || !std::isfinite(*dst[k]))
+                             throw std::invalid_argument("--clf: '" + c[k] + "' is not a number >= 0");
+                     }
+                     p.drag_in_lfv = !a.flag("--clf-no-drag");
+                     return MethodSpec{[p](const madbp::World&, uint64_t) { return std::make_unique<madbp::ClfQp>(p); }};
                  }});
     m.push_back({"line", "straight-line plan + tracker (+ safety filter) (SPEC 3.5)",
                  [](Args&, const MethodSetup& s) {
@@ -101,15 +123,6 @@ std::string method_list() {
     std::string s;
     for (auto& m : methods()) s += "    " + m.name + std::string(m.name.size() < 8 ? 8 - m.name.size() : 1, ' ') + m.help + "\n";
     return s;
-}
-
-std::vector<std::string> split(const std::string& s) {
-    std::vector<std::string> out;
-    std::stringstream ss(s);
-    for (std::string item; std::getline(ss, item, ',');)
-        if (!item.empty()) out.push_back(item);
-    if (out.empty()) throw std::invalid_argument("empty list '" + s + "'");
-    return out;
 }
 
 std::string fixed(double v, int prec) {
