@@ -210,6 +210,22 @@ struct GradCheck {
     }
 };
 
+// The common case: a layer with one input x. forward(x, y) and backward(x, dy, dx) call the
+// layer; reference(x, params) is its double-precision twin.
+static void check_layer(ParamStore* ps, const Mat& x, std::function<MatD(const MatD&, const VecD&)> reference,
+                        std::function<void(const Mat&, Mat&)> forward, std::function<void(const Mat&, const Mat&, Mat&)> backward,
+                        double tol = 2e-3) {
+    GradCheck gc;
+    gc.ps = ps;
+    gc.inputs = {x};
+    gc.tol = tol;
+    gc.reference = [&](const std::vector<MatD>& in, const VecD& p) { return reference(in[0], p); };
+    gc.backward = [&](const Mat& dy, std::vector<Mat>& dx) { backward(gc.inputs[0], dy, dx[0]); };
+    Mat y;
+    forward(gc.inputs[0], y);
+    gc.check(y);
+}
+
 // ---------------------------------------------------------------------------------------------
 // Double-precision references, written as plainly as possible.
 
@@ -393,14 +409,9 @@ TEST_CASE("nn: Linear gradients, with and without bias") {
         Rng rng(2);
         ParamStore ps;
         madbp::Linear lin(ps, "lin", 7, 5, rng, bias);
-        GradCheck gc;
-        gc.ps = &ps;
-        gc.inputs = {randn(7, 9, rng)};
-        gc.reference = [&](const std::vector<MatD>& x, const VecD& p) { return ref_linear(x[0], p, lin); };
-        gc.backward = [&](const Mat& dy, std::vector<Mat>& dx) { lin.backward(gc.inputs[0], dy, dx[0]); };
-        Mat y;
-        lin.forward(gc.inputs[0], y);
-        gc.check(y);
+        check_layer(
+            &ps, randn(7, 9, rng), [&](const MatD& x, const VecD& p) { return ref_linear(x, p, lin); },
+            [&](const Mat& x, Mat& y) { lin.forward(x, y); }, [&](const Mat& x, const Mat& dy, Mat& dx) { lin.backward(x, dy, dx); });
     }
 }
 
@@ -429,14 +440,9 @@ TEST_CASE("nn: LayerNorm gradients") {
     ParamStore ps;
     madbp::LayerNorm ln(ps, "ln", 6, rng);
     ps.value = randn(ps.size(), 1, rng);  // gain and bias away from 1 and 0
-    GradCheck gc;
-    gc.ps = &ps;
-    gc.inputs = {randn(6, 5, rng, 2.0)};
-    gc.reference = [&](const std::vector<MatD>& x, const VecD& p) { return ref_layernorm(x[0], p, ln); };
-    gc.backward = [&](const Mat& dy, std::vector<Mat>& dx) { ln.backward(gc.inputs[0], dy, dx[0]); };
-    Mat y;
-    ln.forward(gc.inputs[0], y);
-    gc.check(y);
+    check_layer(
+        &ps, randn(6, 5, rng, 2.0), [&](const MatD& x, const VecD& p) { return ref_layernorm(x, p, ln); },
+        [&](const Mat& x, Mat& y) { ln.forward(x, y); }, [&](const Mat& x, const Mat& dy, Mat& dx) { ln.backward(x, dy, dx); });
 }
 
 // ---------------------------------------------------------------------------------------------
@@ -560,14 +566,9 @@ TEST_CASE("nn: Conv1d gradients, k 3 and 5, batch 3") {
         ParamStore ps;
         madbp::Conv1d conv(ps, "conv", 3, 4, k, rng);
         const int T = 6;
-        GradCheck gc;
-        gc.ps = &ps;
-        gc.inputs = {randn(3, T * 3, rng)};
-        gc.reference = [&](const std::vector<MatD>& x, const VecD& p) { return ref_conv1d(x[0], T, p, conv); };
-        gc.backward = [&](const Mat& dy, std::vector<Mat>& dx) { conv.backward(gc.inputs[0], T, dy, dx[0]); };
-        Mat y;
-        conv.forward(gc.inputs[0], T, y);
-        gc.check(y);
+        check_layer(
+            &ps, randn(3, T * 3, rng), [&](const MatD& x, const VecD& p) { return ref_conv1d(x, T, p, conv); },
+            [&](const Mat& x, Mat& y) { conv.forward(x, T, y); }, [&](const Mat& x, const Mat& dy, Mat& dx) { conv.backward(x, T, dy, dx); });
     }
 }
 
@@ -590,14 +591,9 @@ TEST_CASE("nn: ConvTranspose1d gradients") {
     ParamStore ps;
     madbp::ConvTranspose1d up(ps, "up", 3, 2, rng);
     const int T = 4;
-    GradCheck gc;
-    gc.ps = &ps;
-    gc.inputs = {randn(3, T * 2, rng)};
-    gc.reference = [&](const std::vector<MatD>& x, const VecD& p) { return ref_conv_transpose(x[0], T, p, up); };
-    gc.backward = [&](const Mat& dy, std::vector<Mat>& dx) { up.backward(gc.inputs[0], T, dy, dx[0]); };
-    Mat y;
-    up.forward(gc.inputs[0], T, y);
-    gc.check(y);
+    check_layer(
+        &ps, randn(3, T * 2, rng), [&](const MatD& x, const VecD& p) { return ref_conv_transpose(x, T, p, up); },
+        [&](const Mat& x, Mat& y) { up.forward(x, T, y); }, [&](const Mat& x, const Mat& dy, Mat& dx) { up.backward(x, T, dy, dx); });
 }
 
 // ---------------------------------------------------------------------------------------------
@@ -769,13 +765,9 @@ static void check_activation(Act act, std::function<double(double)> f, bool avoi
     Mat x = randn(4, 6, rng, 2.0);
     if (avoid_zero)  // ReLU's kink at 0: keep inputs at least 0.05 away
         for (long i = 0; i < x.size(); ++i) x.data()[i] += x.data()[i] >= 0 ? 0.05f : -0.05f;
-    GradCheck gc;
-    gc.inputs = {x};
-    gc.reference = [&](const std::vector<MatD>& in, const VecD&) { return MatD(in[0].unaryExpr(f)); };
-    gc.backward = [&](const Mat& dy, std::vector<Mat>& dx) { act.backward(gc.inputs[0], dy, dx[0]); };
-    Mat y;
-    act.forward(x, y);
-    gc.check(y);
+    check_layer(
+        nullptr, x, [&](const MatD& x, const VecD&) { return MatD(x.unaryExpr(f)); },
+        [&](const Mat& x, Mat& y) { act.forward(x, y); }, [&](const Mat& x, const Mat& dy, Mat& dx) { act.backward(x, dy, dx); });
 }
 
 TEST_CASE("nn: ReLU, SiLU, Mish, Tanh gradients") {
