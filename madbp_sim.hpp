@@ -115,7 +115,6 @@ inline void require_finite(double v, const std::string& field) {
 // ============================ WORLD AND CONTROLLERS BELOW ===================================
 
 #include <algorithm>
-#include <array>
 #include <fstream>
 #include <functional>
 #include <limits>
@@ -191,26 +190,35 @@ inline double box_distance(const Box& b, Vec2 p, Vec2* away = nullptr) {
     return -faces[k];
 }
 
-// Distance from `p` to the nearest static surface of `map` (obstacle or border wall), and the
-// unit direction pointing away from it. Negative when `p` is inside an obstacle.
-inline double static_clearance(const Map& map, Vec2 p, Vec2* away = nullptr) {
+// Calls fn(distance, away) for every static surface of `map` as seen from `p`: the four
+// border walls, each disc and each box. `distance` is from `p` to the surface (negative
+// inside an obstacle); `away` is the unit direction from the surface toward `p`. Contacts,
+// collision counts, clearances and the safety filter all read the map through this.
+template <class Fn>
+inline void for_each_surface(const Map& map, Vec2 p, Fn&& fn) {
     double h = map.half_size;
-    double best = h - p.x;
-    Vec2 dir{-1, 0};
-    auto consider = [&](double d, Vec2 a) { if (d < best) { best = d; dir = a; } };
-    consider(p.x + h, {1, 0});
-    consider(h - p.y, {0, -1});
-    consider(p.y + h, {0, 1});
+    fn(h - p.x, Vec2{-1, 0});
+    fn(p.x + h, Vec2{1, 0});
+    fn(h - p.y, Vec2{0, -1});
+    fn(p.y + h, Vec2{0, 1});
     for (const Disc& o : map.discs) {
         Vec2 d = p - o.c;
         double n = norm(d);
-        consider(n - o.r, n > 0 ? d / n : Vec2{1, 0});
+        fn(n - o.r, n > 1e-12 ? d / n : Vec2{1, 0});
     }
     for (const Box& b : map.boxes) {
         Vec2 a;
         double d = box_distance(b, p, &a);
-        consider(d, a);
+        fn(d, a);
     }
+}
+
+// Distance from `p` to the nearest static surface of `map` (obstacle or border wall), and the
+// unit direction pointing away from it. Negative when `p` is inside an obstacle.
+inline double static_clearance(const Map& map, Vec2 p, Vec2* away = nullptr) {
+    double best = std::numeric_limits<double>::infinity();
+    Vec2 dir;
+    for_each_surface(map, p, [&](double d, Vec2 a) { if (d < best) { best = d; dir = a; } });
     if (away) *away = dir;
     return best;
 }
@@ -433,24 +441,15 @@ public:
         }
     }
 
-    // Contact force on a disc of this world's radius at `p` from obstacles and walls.
+    // Contact force on a disc of this world's radius at `p` from obstacles and walls. For a
+    // disc obstacle, d_min - d = (r + r_o) - |p - c| = r - (surface distance), so every
+    // surface uses penetration_force(surface distance, r).
     Vec2 static_contact_force(Vec2 p) const {
         Vec2 f{0, 0};
-        double r = cfg_.radius, reach = r + kContactCutoff * cfg_.contact_k, h = map_.half_size;
-        if (h - p.x < reach) f.x -= penetration_force(h - p.x, r);
-        if (p.x + h < reach) f.x += penetration_force(p.x + h, r);
-        if (h - p.y < reach) f.y -= penetration_force(h - p.y, r);
-        if (p.y + h < reach) f.y += penetration_force(p.y + h, r);
-        for (const Disc& o : map_.discs) {
-            Vec2 d = p - o.c;
-            double dist = norm(d);
-            if (dist > 0 && dist < o.r + reach) f += d / dist * penetration_force(dist, o.r + r);
-        }
-        for (const Box& b : map_.boxes) {
-            Vec2 away;
-            double dist = box_distance(b, p, &away);
+        double r = cfg_.radius, reach = r + kContactCutoff * cfg_.contact_k;
+        for_each_surface(map_, p, [&](double dist, Vec2 away) {
             if (dist < reach) f += away * penetration_force(dist, r);
-        }
+        });
         return f;
     }
     // VMAS soft contact: force magnitude 100 * k * log(1 + exp((d_min - d) / k)) (SPEC 2).
@@ -491,15 +490,14 @@ private:
     void count_collisions() {
         last_agent_contacts_.clear();
         last_static_contacts_.clear();
-        double r = cfg_.radius, h = map_.half_size;
+        double r = cfg_.radius;
         for (size_t i = 0; i < agents_.size(); ++i) {
             Vec2 p = agents_[i].pos;
             for (size_t j = i + 1; j < agents_.size(); ++j)
                 if (norm(p - agents_[j].pos) < 2 * r) last_agent_contacts_.push_back({agents_[i].id, agents_[j].id});
-            int hits = (h - p.x < r) + (p.x + h < r) + (h - p.y < r) + (p.y + h < r);
-            for (const Disc& o : map_.discs) hits += norm(p - o.c) < o.r + r;
-            for (const Box& b : map_.boxes) hits += box_distance(b, p) < r;
-            for (int k = 0; k < hits; ++k) last_static_contacts_.push_back(agents_[i].id);
+            for_each_surface(map_, p, [&](double dist, Vec2) {
+                if (dist < r) last_static_contacts_.push_back(agents_[i].id);
+            });
         }
         metrics_.agent_collisions += (long)last_agent_contacts_.size();
         metrics_.obstacle_collisions += (long)last_static_contacts_.size();
@@ -940,27 +938,11 @@ inline std::vector<Vec2> safety_filter(const World& world, const std::vector<Vec
             // vu n.(u_i - u_j) >= -rate h - vv n.(v_i - v_j)
             cons.push_back({i, j, nrm, (-prm.rate * h - m.vv * dot(nrm, a.vel - ag[j].vel)) / m.vu});
         }
-        auto add_static = [&](double dist_to_surface, Vec2 away) {
+        for_each_surface(world.map(), a.pos, [&](double dist_to_surface, Vec2 away) {
             if (dist_to_surface > prm.range) return;
             double h = dist_to_surface - r - prm.static_margin;
             cons.push_back({i, -1, away, (-prm.rate * h - m.vv * dot(away, a.vel)) / m.vu});
-        };
-        const Map& map = world.map();
-        double hs = map.half_size;
-        add_static(hs - a.pos.x, {-1, 0});
-        add_static(a.pos.x + hs, {1, 0});
-        add_static(hs - a.pos.y, {0, -1});
-        add_static(a.pos.y + hs, {0, 1});
-        for (const Disc& o : map.discs) {
-            Vec2 d = a.pos - o.c;
-            double dist = norm(d);
-            add_static(dist - o.r, dist > 1e-12 ? d / dist : Vec2{1, 0});
-        }
-        for (const Box& b : map.boxes) {
-            Vec2 away;
-            double dist = box_distance(b, a.pos, &away);
-            add_static(dist, away);
-        }
+        });
         // The box |u| <= lim.
         cons.push_back({i, -1, {1, 0}, -lim});
         cons.push_back({i, -1, {-1, 0}, -lim});
