@@ -212,6 +212,13 @@ public:
     MadbpModel(const MadbpModel&) = delete;
     MadbpModel& operator=(const MadbpModel&) = delete;
 
+    // An independent copy (same config, parameters and mode) with its own workspaces.
+    MadbpModel clone() const {
+        MadbpModel m(config);
+        m.params->value = params->value;
+        m.set_training(training_);
+        return m;
+    }
     long parameter_count() const {
         long n = 0;
         for (auto& e : params->entries) if (e.trainable) n += e.numel();

@@ -1,0 +1,187 @@
+// methods_nn.hpp - the learned methods and the training subcommands of the `madbp` tool:
+// `eval --method madbp`, `collect`, `train`. Included by madbp.cpp.
+#pragma once
+#include <memory>
+#include <mutex>
+
+#include "madbp_train.hpp"
+
+namespace madbp_cli {
+
+inline const char* kDefaultModel = "models/madbp-default.safetensors";
+
+// Options of the diffusion planner, shared by eval, render and demo.
+struct PlannerOptions {
+    std::string model_path;
+    int sample_steps = 0;      // 0: the model's default
+    bool goal_inpaint = true;
+};
+inline PlannerOptions read_planner_options(Args& a) {
+    PlannerOptions o;
+    o.model_path = a.str("--model", kDefaultModel);
+    o.sample_steps = (int)a.integer("--sample-steps", 0, 0, 1000);
+    o.goal_inpaint = !a.flag("--no-goal-inpaint");
+    return o;
+}
+
+// Loads the model once; every episode gets its own planner on a copy (planners keep
+// workspaces, so episodes running in parallel must not share one).
+inline MethodSpec madbp_method(const PlannerOptions& o, const MethodSetup& s) {
+    auto shared = std::make_shared<madbp::MadbpModel>(madbp::load_model(o.model_path));
+    madbp::SafeTensors st = madbp::load_safetensors(o.model_path);
+    int n_train = -1;
+    auto it = st.metadata.find("train.n_train_max");
+    if (it != st.metadata.end()) n_train = std::atoi(it->second.c_str());
+    if (o.sample_steps > shared->config.diffusion_steps)
+        throw std::invalid_argument("--sample-steps: must be <= the model's diffusion steps (" + std::to_string(shared->config.diffusion_steps) + ")");
+    madbp::FollowerConfig fc;
+    fc.safety_filter = s.filter;
+    fc.replan_every = s.replan;
+    MethodSpec spec;
+    spec.n_train = n_train;
+    spec.factory = [shared, fc, o](const madbp::World&, uint64_t seed) -> std::unique_ptr<madbp::Policy> {
+        auto planner = std::make_shared<madbp::DiffusionPlanner>(shared->clone(), seed);
+        if (o.sample_steps > 0) planner->sampler.sample_steps = o.sample_steps;
+        planner->sampler.goal_inpaint = o.goal_inpaint;
+        return std::make_unique<madbp::PlanFollower>([planner](const madbp::World& w) { return planner->plan(w); }, fc);
+    };
+    return spec;
+}
+
+inline void register_nn_methods(std::vector<Method>& m) {
+    m.push_back({"madbp",
+                 "MA-DBP diffusion planner + tracker (+ safety filter) (SPEC 5-8); --model FILE\n"
+                 "                    (default models/madbp-default.safetensors), --sample-steps S,\n"
+                 "                    --no-goal-inpaint",
+                 [](Args& a, const MethodSetup& s) { return madbp_method(read_planner_options(a), s); }});
+}
+
+// ---------------------------------------------------------------------------------------------
+inline int cmd_collect(Args& a) {
+    if (a.flag("--help")) {
+        std::printf(
+            "madbp collect - record demonstrations for training (SPEC 7)\n"
+            "  --demonstrator D  expert (default; the guided expert of SPEC 3.6)\n"
+            "  --maps LIST       maps (default empty,obstacles,barrier)\n"
+            "  --n-train-max N   teams of 1..N agents (default 4)\n"
+            "  --episodes E      episodes per (map, n) cell (default 500)\n"
+            "  --keep-failures   also keep episodes the demonstrator failed\n"
+            "  --threads T       parallel episodes (default 2)\n"
+            "  --seed S          base seed (default 0)\n"
+            "  --out FILE        dataset file (default demos.bin)\n"
+            "  --json            print a JSON summary\n");
+        return 0;
+    }
+    madbp::CollectConfig c;
+    std::string dem = a.str("--demonstrator", "expert");
+    std::string maps = a.str("--maps", "empty,obstacles,barrier");
+    c.maps.clear();
+    std::stringstream ss(maps);
+    for (std::string m; std::getline(ss, m, ',');) {
+        madbp::Rng probe(0);
+        madbp::make_map(m, probe);  // unknown names fail here, before any work
+        c.maps.push_back(m);
+    }
+    c.n_train_max = (int)a.integer("--n-train-max", 4, 1, 64);
+    c.episodes = (int)a.integer("--episodes", 500, 1, 10000000);
+    c.successful_only = !a.flag("--keep-failures");
+    c.threads = (int)a.integer("--threads", 2, 1, 256);
+    c.seed = (uint64_t)a.integer("--seed", 0, 0);
+    std::string out = a.str("--out", "demos.bin");
+    bool json = a.flag("--json");
+    a.finish();
+    if (dem != "expert") throw std::invalid_argument("--demonstrator: unknown demonstrator '" + dem + "' (expected expert)");
+    auto t0 = std::chrono::steady_clock::now();
+    madbp::DemoSet set = madbp::collect_demonstrations(c, madbp::expert_demonstrator(), dem);
+    double secs = std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count();
+    madbp::save_demos(out, set);
+    long steps = 0;
+    for (auto& d : set.episodes) steps += d.steps;
+    const long asked = (long)c.maps.size() * c.n_train_max * c.episodes;
+    if (json)
+        std::printf("%s\n", Json().add("out", out).add("demonstrator", dem).add("episodes", (long)set.episodes.size())
+                                .add("asked", asked).add("steps", steps).add("seconds", secs).line().c_str());
+    else
+        std::printf("collect: kept %zu of %ld episodes (%ld steps) from '%s' in %.1f s -> %s\n", set.episodes.size(), asked, steps,
+                    dem.c_str(), secs, out.c_str());
+    return 0;
+}
+
+inline int cmd_train(Args& a) {
+    if (a.flag("--help")) {
+        std::printf(
+            "madbp train - train the MA-DBP denoiser on demonstrations (SPEC 7)\n"
+            "  --data FILE        dataset from `madbp collect` (default demos.bin)\n"
+            "  --out FILE         model file (default model.safetensors); training state goes to\n"
+            "                     FILE.train, loss curves to FILE.csv and FILE.svg\n"
+            "  --resume           continue from FILE.train\n"
+            "  --steps N          optimizer steps (default 20000)\n"
+            "  --batch B          windows per step (default 64)\n"
+            "  --lr X             Adam learning rate (default 3e-4)\n"
+            "  --n-train-max N    curriculum end (default 4)\n"
+            "  --curriculum-end F fraction of training at which n_curr reaches N (default 0.5)\n"
+            "  --weights a,b,c,d  loss weights noise,boundary,temporal,collision (default .85,.025,.025,.1)\n"
+            "  --horizon H --dim D --heads K --channels C1,C2 --kernel K --n-max N --grid G\n"
+            "  --processor AAP|LE --window MW|CT   model configuration (SPEC 5; defaults in README)\n"
+            "  --checkpoint-every N (default 1000)   --threads T (default 1)   --seed S (default 0)\n"
+            "  --json             print the final losses as JSON\n");
+        return 0;
+    }
+    std::string data = a.str("--data", "demos.bin");
+    madbp::TrainConfig tc;
+    tc.out = a.str("--out", "model.safetensors");
+    tc.resume = a.flag("--resume");
+    tc.steps = a.integer("--steps", 20000, 1, 100000000);
+    tc.batch = (int)a.integer("--batch", 64, 1, 100000);
+    tc.lr = (float)a.real("--lr", 3e-4, 1e-7, 1);
+    tc.n_train_max = (int)a.integer("--n-train-max", 4, 1, 1024);
+    tc.curriculum_end = (float)a.real("--curriculum-end", 0.5, 0, 1);
+    tc.checkpoint_every = a.integer("--checkpoint-every", 1000, 1);
+    tc.seed = (uint64_t)a.integer("--seed", 0, 0);
+    std::string w = a.str("--weights", "");
+    if (!w.empty()) {
+        float v[4];
+        char tail = 0;
+        if (std::sscanf(w.c_str(), "%f,%f,%f,%f%c", &v[0], &v[1], &v[2], &v[3], &tail) != 4)
+            throw std::invalid_argument("--weights: expected four numbers like .85,.025,.025,.1, got '" + w + "'");
+        for (int i = 0; i < 4; ++i) {
+            if (!(v[i] >= 0) || !std::isfinite(v[i])) throw std::invalid_argument("--weights: weights must be finite and >= 0");
+            tc.loss_weights[i] = v[i];
+        }
+    }
+    madbp::ModelConfig mc;
+    mc.horizon = (int)a.integer("--horizon", mc.horizon, 2, 4096);
+    mc.dim = (int)a.integer("--dim", mc.dim, 4, 4096);
+    mc.heads = (int)a.integer("--heads", mc.heads, 1, 64);
+    mc.kernel = (int)a.integer("--kernel", mc.kernel, 1, 31);
+    mc.n_max = (int)a.integer("--n-max", mc.n_max, 1, 1024);
+    mc.grid = (int)a.integer("--grid", mc.grid, 8, 1024);
+    std::string ch = a.str("--channels", "");
+    if (!ch.empty()) {
+        mc.channels.clear();
+        for (long c : a.integers("--channels", ch, 1, 1024)) mc.channels.push_back((int)c);
+    }
+    std::string proc = a.str("--processor", "AAP"), win = a.str("--window", "MW");
+    if (proc != "AAP" && proc != "LE") throw std::invalid_argument("--processor: expected AAP or LE, got '" + proc + "'");
+    if (win != "MW" && win != "CT") throw std::invalid_argument("--window: expected MW or CT, got '" + win + "'");
+    mc.processor = proc == "AAP" ? madbp::Processor::AAP : madbp::Processor::LE;
+    mc.window = win == "MW" ? madbp::WindowMode::MW : madbp::WindowMode::CT;
+    int threads = (int)a.integer("--threads", 1, 1, 256);
+    bool json = a.flag("--json");
+    a.finish();
+    mc.validate();
+    madbp::set_num_threads(threads);
+    madbp::DemoSet demos = madbp::load_demos(data);
+    madbp::MadbpModel model(mc, tc.seed);
+    if (!json) std::printf("train: %zu episodes from '%s', model with %ld parameters\n", demos.episodes.size(), demos.demonstrator.c_str(), model.parameter_count());
+    madbp::TrainReport r = madbp::train(demos, model, tc);
+    if (json)
+        std::printf("%s\n", Json().add("out", tc.out).add("steps", r.steps).add("seconds", r.seconds).add("train_loss", r.last_train.total)
+                                .add("val_loss", r.last_val.total).add("val_noise", r.last_val.noise).line().c_str());
+    else
+        std::printf("train: %ld steps in %.1f s; last train loss %.4f, validation loss %.4f (noise %.4f) -> %s\n", r.steps, r.seconds,
+                    r.last_train.total, r.last_val.total, r.last_val.noise, tc.out.c_str());
+    return 0;
+}
+
+}  // namespace madbp_cli
