@@ -326,6 +326,7 @@ struct MultiHeadAttention {
     Mat P;           // (Lk, Lq*B*heads): block (b*heads + h) holds softmax weights, keys x queries
     Mat ctx;         // (D, Lq*B) attention output before Wo
     Vec mask;        // (Lk*B) copy of key_mask (ones when nullptr)
+    Vec mask_bias;   // (Lk*B) 0 for keys attended, -1e30 for masked ones
     Eigen::Matrix<unsigned char, Eigen::Dynamic, 1> dead;  // (B) 1 when every key is masked
     Mat dctx, dQ, dK, dV, dy_live;  // backward scratch
     std::vector<Mat> dS;            // (Lk, Lq) per thread: score gradients of one (item, head)
@@ -354,6 +355,7 @@ struct MultiHeadAttention {
         mask.resize(Lk * B);
         if (key_mask) mask = Eigen::Map<const Vec>(key_mask, Lk * B);
         else mask.setOnes();
+        mask_bias = (mask.array() != 0).select(Vec::Zero(Lk * B), -1e30f);
         dead.resize(B);
         for (int b = 0; b < B; ++b) dead[b] = (mask.segment(b * Lk, Lk).array() != 0).any() ? 0 : 1;
         P.resize(Lk, (long)Lq * B * heads);
@@ -372,19 +374,14 @@ struct MultiHeadAttention {
                 return;
             }
             Pb.noalias() = K.block(h * dh, (long)b * Lk, dh, Lk).transpose() * Q.block(h * dh, (long)b * Lq, dh, Lq);
-            const float* m = mask.data() + (long)b * Lk;
-            for (int q = 0; q < Lq; ++q) {  // softmax over the unmasked keys of each query
-                float* s = Pb.col(q).data();
-                float mx = -std::numeric_limits<float>::infinity();
-                for (int k = 0; k < Lk; ++k)
-                    if (m[k] != 0) mx = std::max(mx, s[k] * scale);
-                float sum = 0;
-                for (int k = 0; k < Lk; ++k) {
-                    s[k] = m[k] != 0 ? std::exp(s[k] * scale - mx) : 0.0f;
-                    sum += s[k];
-                }
-                const float inv = 1.0f / sum;
-                for (int k = 0; k < Lk; ++k) s[k] *= inv;
+            // Softmax over the unmasked keys of each query, vectorised along the keys: masked
+            // keys get a score of -1e30, so exp() makes them exactly 0.
+            const auto bias = mask_bias.segment((long)b * Lk, Lk).array();
+            for (int q = 0; q < Lq; ++q) {
+                auto s = Pb.col(q).array();
+                s = s * scale + bias;
+                s = (s - s.maxCoeff()).exp();
+                s *= 1.0f / s.sum();
             }
             out.noalias() = V.block(h * dh, (long)b * Lk, dh, Lk) * Pb;
         });
