@@ -14,11 +14,16 @@ namespace madbp {
 // Shapes: B scenes, n agent slots per scene (padded; inactive slots masked), A = B*n agent
 // columns, H window length, D embedding width, d = 2 (positions), P = (G/8)^2 image tokens.
 // A window tensor is (2, H*A) with column a*H + t (agent-major, time fastest), a = b*n + i,
-// which is also the U-Net's layout (agents folded into the batch). Positions are normalised
-// by ModelConfig::position_scale (world units / scale).
+// which is also the U-Net's layout (agents folded into the batch). Context positions (pose)
+// are normalised by ModelConfig::position_scale (world units / scale). The diffused window
+// holds each agent's displacement from its current position, (p_t - p_0) / window_scale, so
+// column t = 0 is always 0 (inpainted) and the same motion looks the same anywhere in the
+// world. The processor's Linear sees [displacement; current position], which contains the
+// paper's Linear(absolute positions) as a special case.
 
 enum class Processor { AAP, LE };      // axial attention processor | linear encoder (ablation)
 enum class WindowMode { MW, CT };      // moving window | complete trajectory (ablation)
+enum class Prediction { Eps, X0 };     // the network predicts the noise (paper) | the clean window
 
 struct ModelConfig {
     int horizon = 16;                  // H, waypoints per window incl. the current position; multiple of 2^levels
@@ -32,7 +37,9 @@ struct ModelConfig {
     int sample_steps = 10;             // S (DDIM, default)
     Processor processor = Processor::AAP;
     WindowMode window = WindowMode::MW;
-    float position_scale = 1.2f;       // world units per normalised unit (the training world's half-size)
+    float position_scale = 1.2f;       // world units per normalised pose unit (the training world's half-size)
+    float window_scale = 0.6f;         // world units per normalised displacement (~ top speed x window time)
+    Prediction prediction = Prediction::Eps;
 
     int levels() const { return (int)channels.size(); }
     int image_tokens() const { return (grid / 8) * (grid / 8); }
@@ -48,17 +55,21 @@ struct ModelConfig {
         if (kernel < 1 || kernel % 2 == 0) bad("kernel", "must be odd");
         if (diffusion_steps < 2 || sample_steps < 1 || sample_steps > diffusion_steps) bad("sample_steps", "must be in [1, diffusion_steps]");
         if (!(position_scale > 0) || !std::isfinite(position_scale)) bad("position_scale", "must be positive");
+        if (!(window_scale > 0) || !std::isfinite(window_scale)) bad("window_scale", "must be positive");
     }
     std::map<std::string, std::string> to_metadata() const {
         std::string ch;
         for (size_t i = 0; i < channels.size(); ++i) ch += (i ? "," : "") + std::to_string(channels[i]);
         char scale[32];
         std::snprintf(scale, sizeof scale, "%.9g", position_scale);
+        char wscale[32];
+        std::snprintf(wscale, sizeof wscale, "%.9g", window_scale);
         return {{"model", "madbp"}, {"horizon", std::to_string(horizon)}, {"dim", std::to_string(dim)},
                 {"heads", std::to_string(heads)}, {"n_max", std::to_string(n_max)}, {"grid", std::to_string(grid)},
                 {"channels", ch}, {"kernel", std::to_string(kernel)}, {"diffusion_steps", std::to_string(diffusion_steps)},
                 {"sample_steps", std::to_string(sample_steps)}, {"processor", processor == Processor::AAP ? "AAP" : "LE"},
-                {"window", window == WindowMode::MW ? "MW" : "CT"}, {"position_scale", scale}};
+                {"window", window == WindowMode::MW ? "MW" : "CT"}, {"position_scale", scale}, {"window_scale", wscale},
+                {"prediction", prediction == Prediction::Eps ? "eps" : "x0"}};
     }
     static ModelConfig from_metadata(const std::map<std::string, std::string>& md, const std::string& source) {
         auto get = [&](const std::string& k) -> const std::string& {
@@ -101,9 +112,17 @@ struct ModelConfig {
         const std::string& w = get("window");
         if (w != "MW" && w != "CT") throw std::runtime_error(source + ": metadata field 'window' must be MW or CT");
         c.window = w == "MW" ? WindowMode::MW : WindowMode::CT;
-        try { c.position_scale = std::stof(get("position_scale")); } catch (...) {
-            throw std::runtime_error(source + ": metadata field 'position_scale' is not a number");
+        try {
+            c.position_scale = std::stof(get("position_scale"));
+            c.window_scale = std::stof(get("window_scale"));
+        } catch (const std::runtime_error&) {
+            throw;
+        } catch (...) {
+            throw std::runtime_error(source + ": metadata fields 'position_scale' / 'window_scale' must be numbers");
         }
+        const std::string& pr = get("prediction");
+        if (pr != "eps" && pr != "x0") throw std::runtime_error(source + ": metadata field 'prediction' must be eps or x0");
+        c.prediction = pr == "eps" ? Prediction::Eps : Prediction::X0;
         try { c.validate(); } catch (const std::invalid_argument& e) { throw std::runtime_error(source + ": " + e.what()); }
         return c;
     }
@@ -352,7 +371,7 @@ private:
         Mish mlp_act;
         std::vector<int> slot_ids, time_ids;
         std::vector<float> agent_key_mask;
-        Mat proj, pe, pos, att_t, sum_t, xt, xt_tm, att_a_tm, att_a, sum_a, xat, m1, m1a, m2, out;
+        Mat in, proj, pe, pos, att_t, sum_t, xt, xt_tm, att_a_tm, att_a, sum_a, xat, m1, m1a, m2, out;
         Mat d_xat, d_m2, d_m1a, d_m1, d_tmp, d_sum_a, d_xt, d_tm, d_q, d_kv, d_sum_t, d_pos, d_x;
     } proc_;
     struct UNet {
@@ -373,7 +392,7 @@ private:
         const ModelConfig& c = config;
         const int D = c.dim;
         auto& p = proc_;
-        p.in_proj = Linear(ps, "aap.in_proj", 2, D, rng);
+        p.in_proj = Linear(ps, "aap.in_proj", 4, D, rng);
         if (c.processor == Processor::AAP) {
             p.pe_agent = Embedding(ps, "aap.pe_agent", c.n_max, D, rng);
             p.pe_time = Embedding(ps, "aap.pe_time", c.horizon, D, rng);
@@ -449,8 +468,11 @@ private:
     void process(const Mat& x, const SceneBatch& batch) {
         const int B = batch.B, n = batch.n, A = B * n, H = config.horizon;
         auto& p = proc_;
-        last_x_ = x;
-        p.in_proj.forward(x, p.proj);
+        // in_ (4, H*A): the window and, on every column, the agent's current position.
+        p.in.resize(4, (long)H * A);
+        p.in.topRows(2) = x;
+        for (int a = 0; a < A; ++a) p.in.block(2, (long)a * H, 2, H).colwise() = batch.pose.col(a).head<2>();
+        p.in_proj.forward(p.in, p.proj);
         if (config.processor == Processor::LE) {
             p.out = p.proj;
             return;
@@ -490,7 +512,7 @@ private:
         const int B = batch.B, n = batch.n, A = B * n, H = config.horizon;
         auto& p = proc_;
         if (config.processor == Processor::LE) {
-            p.in_proj.backward(last_x_, d_out, p.d_x);
+            p.in_proj.backward(p.in, d_out, p.d_x);
             return;
         }
         p.mlp2.backward(p.m1a, d_out, p.d_m1a);
@@ -508,9 +530,8 @@ private:
         p.d_pos = p.d_sum_t + p.d_q + p.d_kv;
         p.pe_agent.backward(p.slot_ids.data(), H * A, p.d_pos);
         p.pe_time.backward(p.time_ids.data(), H * A, p.d_pos);
-        p.in_proj.backward(last_x_, p.d_pos, p.d_x);
+        p.in_proj.backward(p.in, p.d_pos, p.d_x);
     }
-    Mat last_x_;  // the processor's input, kept for in_proj's backward
 
     // Inputs of the down and up blocks, as forward left them.
     const Mat& down_input(int l) const { return l == 0 ? proc_.out : net_.pooled[l - 1]; }
@@ -620,21 +641,30 @@ inline float predict_x0(float x_k, float eps, double alpha_bar) {
 // Sampling options (SPEC 6, paper Alg. 2).
 struct SamplerConfig {
     int sample_steps = 10;       // S, DDIM steps (eta = 0), in [1, K]
-    float clip = 1.0f;           // x0_hat clipped to [-clip, clip] (normalised units; Diffuser's clip_denoised)
+    float clip = 1.5f;           // x0_hat clipped to [-clip, clip] (normalised displacements; Diffuser's clip_denoised)
     bool goal_inpaint = true;    // pin the window's last waypoint to the goal when it is within reach
     float goal_reach = 0.55f;    // "within reach": distance to goal in world units at most this
 };
 
+// Where the sampler pins the window of agent a (normalised displacement units): t = 0 always
+// (zero displacement); t = H-1 to the goal when `goal_inpaint` and the goal is within reach.
+inline bool goal_within_reach(const SceneBatch& batch, int a, const ModelConfig& c, float reach_world, Eigen::Vector2f* end) {
+    const Eigen::Vector2f to_goal = (batch.pose.col(a).tail<2>() - batch.pose.col(a).head<2>()) * c.position_scale;
+    if (to_goal.norm() > reach_world) return false;
+    if (end) *end = to_goal / c.window_scale;
+    return true;
+}
+
 // Draws windows for a batch of scenes with DDIM: x (2, H*A) starts as N(0, I); after every
-// step the current positions (and, optionally, reachable goals) are re-imposed and inactive
-// agents are zeroed. `model.encode_context(batch)` is called here. Output in normalised units.
-// Denoiser: MadbpModel, or anything with `config`, encode_context(batch), denoise(x, k, eps).
+// step the pinned waypoints are re-imposed and inactive agents are zeroed (paper Alg. 2).
+// `model.encode_context(batch)` is called here. Output: normalised displacements.
+// Denoiser: MadbpModel, or anything with `config`, encode_context(batch), denoise(x, k, out).
 template <class Denoiser>
-void sample_windows(Denoiser& model, const NoiseSchedule& schedule, const SceneBatch& batch,
-                           const SamplerConfig& sc, Rng& rng, Mat& x, Mat& eps, std::vector<int>& step_buf) {
+void sample_windows(Denoiser& model, const NoiseSchedule& schedule, const SceneBatch& batch, const SamplerConfig& sc,
+                    Rng& rng, Mat& x, Mat& out, std::vector<int>& step_buf) {
     const ModelConfig& c = model.config;
-    const int A = batch.agents(), H = c.horizon, B = batch.B;
-    const float reach = sc.goal_reach / c.position_scale;
+    const int A = batch.agents(), H = c.horizon, B = batch.B, S = sc.sample_steps;
+    if (S < 1 || S > schedule.K) throw std::invalid_argument("sample_steps: " + std::to_string(S) + " must be in [1, " + std::to_string(schedule.K) + "]");
     model.encode_context(batch);
     x.resize(2, (long)H * A);
     for (long j = 0; j < x.size(); ++j) x.data()[j] = (float)rng.normal();
@@ -642,26 +672,26 @@ void sample_windows(Denoiser& model, const NoiseSchedule& schedule, const SceneB
         for (int a = 0; a < A; ++a) {
             auto w = x.middleCols((long)a * H, H);
             if (batch.agent_mask[a] == 0) { w.setZero(); continue; }
-            w.col(0) = batch.pose.col(a).head<2>();
-            Eigen::Vector2f to_goal = batch.pose.col(a).tail<2>() - batch.pose.col(a).head<2>();
-            if (sc.goal_inpaint && to_goal.norm() <= reach) w.col(H - 1) = batch.pose.col(a).tail<2>();
+            w.col(0).setZero();
+            Eigen::Vector2f end;
+            if (sc.goal_inpaint && goal_within_reach(batch, a, c, sc.goal_reach, &end)) w.col(H - 1) = end;
         }
     };
     impose();
-    const int S = sc.sample_steps;
-    if (S < 1 || S > schedule.K) throw std::invalid_argument("sample_steps: must be in [1, K]");
     step_buf.resize(B);
     for (int s = S; s >= 1; --s) {
         const int k = (int)std::lround((double)s * schedule.K / S);
         const int k_prev = (int)std::lround((double)(s - 1) * schedule.K / S);
         std::fill(step_buf.begin(), step_buf.end(), k);
-        model.denoise(x, step_buf.data(), eps);
+        model.denoise(x, step_buf.data(), out);
         const double ab = schedule.alpha_bar[k], ab_prev = schedule.alpha_bar[k_prev];
         const float sa = (float)std::sqrt(ab), s1a = (float)std::sqrt(1 - ab);
         const float sap = (float)std::sqrt(ab_prev), s1ap = (float)std::sqrt(1 - ab_prev);
+        const bool eps_mode = c.prediction == Prediction::Eps;
         for (long j = 0; j < x.size(); ++j) {
-            float x0 = std::clamp((x.data()[j] - s1a * eps.data()[j]) / sa, -sc.clip, sc.clip);
-            float e = (x.data()[j] - sa * x0) / s1a;  // eps consistent with the clipped x0
+            const float xj = x.data()[j], oj = out.data()[j];
+            const float x0 = std::clamp(eps_mode ? (xj - s1a * oj) / sa : oj, -sc.clip, sc.clip);
+            const float e = (xj - sa * x0) / s1a;  // the noise consistent with the clipped x0
             x.data()[j] = sap * x0 + s1ap * e;
         }
         impose();
@@ -723,9 +753,10 @@ public:
         for (int i = 0; i < n; ++i) {
             out.ids[i] = world.agents()[i].id;
             out.waypoints[i].resize(H - 1);
+            const Vec2 p0 = world.agents()[i].pos;
             for (int t = 1; t < H; ++t) {
                 auto w = x_.col((long)i * H + t);
-                out.waypoints[i][t - 1] = Vec2{w(0) * (double)c.position_scale, w(1) * (double)c.position_scale};
+                out.waypoints[i][t - 1] = p0 + Vec2{w(0) * (double)c.window_scale, w(1) * (double)c.window_scale};
             }
         }
         out.plan_ms = std::chrono::duration<double, std::milli>(std::chrono::steady_clock::now() - t0).count();

@@ -330,14 +330,17 @@ inline double temporal_loss(const Mat& x0_hat, const std::vector<float>& mask, i
 
 // L_collision = (1/B) sum_b sum_t [ sum_{i != j active} ReLU(d_min - |s_i - s_j|)
 //                                   + sum_i ReLU(radius - clearance(s_i)) ]
-// in world units (x0_hat * scale); clearance is the distance to the nearest obstacle or wall
-// surface of the scene's map. d_min = 2 * radius.
-inline double collision_loss(const Mat& x0_hat, const std::vector<float>& mask, int B, int n, int H,
+// in world units, s = origin + x0_hat * scale (origin (2, A): each agent's current position);
+// clearance is the distance to the nearest obstacle or wall surface of the scene's map.
+// d_min = 2 * radius.
+inline double collision_loss(const Mat& x0_hat, const Mat& origin, const std::vector<float>& mask, int B, int n, int H,
                              const std::vector<Map>& maps, float scale, float radius, const float* scene_weight,
                              float weight, Mat& grad) {
     double total = 0;
     const float d_min = 2 * radius;
-    auto world = [&](int a, int t) { return Vec2{x0_hat(0, (long)a * H + t) * (double)scale, x0_hat(1, (long)a * H + t) * (double)scale}; };
+    auto world = [&](int a, int t) {
+        return Vec2{origin(0, a) + x0_hat(0, (long)a * H + t) * (double)scale, origin(1, a) + x0_hat(1, (long)a * H + t) * (double)scale};
+    };
     for (int b = 0; b < B; ++b) {
         const float w = scene_weight[b], g_scale = weight * w / B * scale;  // d(world)/d(normalised) = scale
         for (int t = 0; t < H; ++t)
@@ -404,12 +407,13 @@ struct TrainConfig {
 // A window of one demonstration: frames t .. t+H-1 of episode `episode`.
 struct WindowRef { int episode, t; };
 
-// A batch ready for the model and the loss. x0 (2, H*A) normalised; horizon_goal (2, A) the
-// demonstrated position at t+H; pinned (H*A) 1 where the sampler would inpaint (t = 0, and the
-// end when the goal is within reach), those columns are given to the model clean.
+// A batch ready for the model and the loss. x0 (2, H*A) normalised displacements from each
+// agent's position at the window start; horizon_goal (2, A) the demonstrated displacement at
+// t+H; origin (2, A) the start positions in world units; pinned (H*A) 1 where the sampler
+// inpaints (t = 0, and the end when the goal is within reach): given to the model clean.
 struct TrainBatch {
     SceneBatch scene;
-    Mat x0, horizon_goal;
+    Mat x0, horizon_goal, origin;
     std::vector<float> pinned;
     std::vector<Map> maps;  // per scene, in world units, mirrored like the scene
 };
@@ -440,10 +444,11 @@ inline void make_train_batch(const DemoSet& demos, const std::vector<WindowRef>&
     }
     if (n_slots > mc.n_max) throw std::invalid_argument("train: windows with " + std::to_string(n_slots) + " agents exceed n_max");
     const int B = tc.batch, n = n_slots, H = mc.horizon, A = B * n, G = mc.grid;
-    const float s = mc.position_scale, reach = tc.goal_reach;
+    const float s = mc.position_scale, ws = mc.window_scale, reach = tc.goal_reach;
     tb.scene.resize(B, n, G);
     tb.x0.setZero(2, (long)H * A);
     tb.horizon_goal.setZero(2, A);
+    tb.origin.setZero(2, A);
     tb.pinned.assign((size_t)H * A, 0.0f);
     tb.maps.resize(B);
     std::vector<int> order(n), slots(mc.n_max);
@@ -466,13 +471,16 @@ inline void make_train_batch(const DemoSet& demos, const std::vector<WindowRef>&
             tb.scene.slot[a] = slots[i];
             const Vec2 start = mir(d.position(ref.t, src)), goal = mir(d.goals[src]);
             tb.scene.pose.col(a) << (float)(start.x / s), (float)(start.y / s), (float)(goal.x / s), (float)(goal.y / s);
+            tb.origin.col(a) << (float)start.x, (float)start.y;
             for (int t = 0; t < H; ++t) {
-                const Vec2 p = mir(d.position(ref.t + t, src));
-                tb.x0.col((long)a * H + t) << (float)(p.x / s), (float)(p.y / s);
+                const Vec2 p = mir(d.position(ref.t + t, src)) - start;
+                tb.x0.col((long)a * H + t) << (float)(p.x / ws), (float)(p.y / ws);
             }
-            const Vec2 hg = mir(d.position(ref.t + H, src));
-            tb.horizon_goal.col(a) << (float)(hg.x / s), (float)(hg.y / s);
+            const Vec2 hg = mir(d.position(ref.t + H, src)) - start;
+            tb.horizon_goal.col(a) << (float)(hg.x / ws), (float)(hg.y / ws);
             tb.pinned[(size_t)a * H] = 1;
+            // As the sampler: the end is pinned when the goal is within reach (to the
+            // demonstrated end, which is where the demonstrator took the agent toward it).
             if (norm(goal - start) <= reach) tb.pinned[(size_t)a * H + H - 1] = 1;
         }
         for (int i = d.agents; i < n; ++i) tb.scene.slot[b * n + i] = slots[i];  // unused, distinct
@@ -498,7 +506,7 @@ struct LossTerms {
 };
 
 struct LossWorkspace {
-    Mat eps, x_k, eps_pred, x0_hat, d_x0, d_eps;
+    Mat eps, x_k, out, x0_hat, d_x0, d_out, zero_start;
     std::vector<int> k;
     std::vector<float> alpha_bar;
 };
@@ -516,6 +524,7 @@ inline LossTerms diffusion_loss(MadbpModel& model, const NoiseSchedule& schedule
         ws.k[b] = 1 + rng.uniform_int(schedule.K);
         ws.alpha_bar[b] = (float)schedule.alpha_bar[ws.k[b]];
     }
+    ws.zero_start.setZero(2, A);  // windows are displacements: every start is 0
     ws.eps.resize(2, (long)H * A);
     for (long j = 0; j < ws.eps.size(); ++j) ws.eps.data()[j] = (float)rng.normal();
     ws.x_k.resize(2, (long)H * A);
@@ -530,43 +539,49 @@ inline LossTerms diffusion_loss(MadbpModel& model, const NoiseSchedule& schedule
         }
     }
     model.encode_context(sc);
-    model.denoise(ws.x_k, ws.k.data(), ws.eps_pred);
+    model.denoise(ws.x_k, ws.k.data(), ws.out);
+    const bool eps_mode = mc.prediction == Prediction::Eps;
+    // The denoising target: the noise (paper eq. 3) or the clean window (x0 prediction).
+    const Mat& target = eps_mode ? ws.eps : tb.x0;
 
     LossTerms L;
-    ws.d_eps.setZero(2, (long)H * A);
+    ws.d_out.setZero(2, (long)H * A);
     // L_noise: mean squared error over the active, not pinned, elements.
     double count = 0;
     for (long c = 0; c < (long)H * A; ++c) count += sc.agent_mask[c / H] && !tb.pinned[c] ? 2 : 0;
     for (long c = 0; c < (long)H * A; ++c) {
         if (!sc.agent_mask[c / H] || tb.pinned[c]) continue;
         for (int r = 0; r < 2; ++r) {
-            const float e = ws.eps_pred(r, c) - ws.eps(r, c);
+            const float e = ws.out(r, c) - target(r, c);
             L.noise += e * e;
-            ws.d_eps(r, c) = (float)(2 * W[0] * e / count);
+            ws.d_out(r, c) = (float)(2 * W[0] * e / count);
         }
     }
     L.noise /= std::max(1.0, count);
-    // x0_hat from eps_pred (pinned columns are known exactly and pass no gradient).
+    // x0_hat (pinned columns are known exactly and pass no gradient).
     ws.x0_hat.resize(2, (long)H * A);
     for (long c = 0; c < (long)H * A; ++c) {
         const float ab = ws.alpha_bar[c / H / n];
         if (tb.pinned[c] || !sc.agent_mask[c / H]) ws.x0_hat.col(c) = ws.x_k.col(c);
+        else if (!eps_mode) ws.x0_hat.col(c) = ws.out.col(c);
         else
-            for (int r = 0; r < 2; ++r) ws.x0_hat(r, c) = predict_x0(ws.x_k(r, c), ws.eps_pred(r, c), ab);
+            for (int r = 0; r < 2; ++r) ws.x0_hat(r, c) = predict_x0(ws.x_k(r, c), ws.out(r, c), ab);
     }
     ws.d_x0.setZero(2, (long)H * A);
-    L.boundary = boundary_loss(ws.x0_hat, sc.pose.topRows(2), tb.horizon_goal, sc.agent_mask, H, n, ws.alpha_bar.data(), W[1], ws.d_x0);
+    L.boundary = boundary_loss(ws.x0_hat, ws.zero_start, tb.horizon_goal, sc.agent_mask, H, n, ws.alpha_bar.data(), W[1], ws.d_x0);
     L.temporal = temporal_loss(ws.x0_hat, sc.agent_mask, H, n, tc.jerk_weight, ws.alpha_bar.data(), W[2], ws.d_x0);
-    L.collision = collision_loss(ws.x0_hat, sc.agent_mask, B, n, H, tb.maps, mc.position_scale, 0.1f, ws.alpha_bar.data(), W[3], ws.d_x0);
+    L.collision = collision_loss(ws.x0_hat, tb.origin, sc.agent_mask, B, n, H, tb.maps, mc.window_scale, 0.1f, ws.alpha_bar.data(),
+                                 W[3], ws.d_x0);
     L.total = W[0] * L.noise + W[1] * L.boundary + W[2] * L.temporal + W[3] * L.collision;
     if (!backward) return L;
-    // d x0_hat / d eps_pred = -sqrt(1 - ab) / sqrt(ab) on the free columns.
+    // Chain the auxiliary gradients to the network output: d x0_hat / d eps = -sqrt(1-ab)/sqrt(ab)
+    // (eps prediction) or 1 (x0 prediction), on the free columns.
     for (long c = 0; c < (long)H * A; ++c) {
         if (tb.pinned[c] || !sc.agent_mask[c / H]) continue;
         const float ab = ws.alpha_bar[c / H / n];
-        ws.d_eps.col(c) += ws.d_x0.col(c) * (-std::sqrt(1 - ab) / std::sqrt(ab));
+        ws.d_out.col(c) += ws.d_x0.col(c) * (eps_mode ? -std::sqrt(1 - ab) / std::sqrt(ab) : 1.0f);
     }
-    model.backward(ws.d_eps);
+    model.backward(ws.d_out);
     return L;
 }
 

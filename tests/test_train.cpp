@@ -117,7 +117,8 @@ TEST_CASE("collision loss: two overlapping agents and an agent in a wall") {
     }
     std::vector<float> mask = {1, 1}, weight = {1};
     std::vector<Map> maps(1);
-    const double L = collision_loss(x, mask, B, n, H, maps, 1.0f, 0.1f, weight.data(), 1.0f, grad);
+    const Mat origin = Mat::Zero(2, n);
+    const double L = collision_loss(x, origin, mask, B, n, H, maps, 1.0f, 0.1f, weight.data(), 1.0f, grad);
     // Per step both orders of the pair: 2 * (0.2 - 0.1).
     CHECK(L == doctest::Approx(H * 0.2).epsilon(1e-5));
     for (int t = 0; t < H; ++t) {
@@ -128,12 +129,12 @@ TEST_CASE("collision loss: two overlapping agents and an agent in a wall") {
     // A masked agent costs nothing.
     grad.setZero();
     mask[1] = 0;
-    CHECK(collision_loss(x, mask, B, n, H, maps, 1.0f, 0.1f, weight.data(), 1.0f, grad) == 0.0);
+    CHECK(collision_loss(x, origin, mask, B, n, H, maps, 1.0f, 0.1f, weight.data(), 1.0f, grad) == 0.0);
     // An agent 0.04 from the wall at x = 1.2 (scale 1.2: normalised 1.16 / 1.2).
     mask = {1, 0};
     for (int t = 0; t < H; ++t) x.col(t) << 1.16f / 1.2f, 0.0f;
     grad.setZero();
-    const double Lw = collision_loss(x, mask, B, n, H, maps, 1.2f, 0.1f, weight.data(), 1.0f, grad);
+    const double Lw = collision_loss(x, origin, mask, B, n, H, maps, 1.2f, 0.1f, weight.data(), 1.0f, grad);
     CHECK(Lw == doctest::Approx(H * 0.06).epsilon(1e-4));
     CHECK(grad(0, 0) > 0);  // moving right (into the wall) raises the loss
 }
