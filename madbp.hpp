@@ -141,22 +141,51 @@ inline void parallel_for(int n, int threads, const F& fn) {
     for (int i = 0; i < n; ++i) fn(i, 0);
 }
 
-// y = A * x, splitting the columns of x and y over threads. y must already have its size.
+// Column range [c0, c1) of n columns for thread t of nt, in multiples of 8 columns.
+inline void thread_columns(int n, int t, int nt, int& c0, int& c1) {
+    const int chunk = ((n + nt - 1) / nt + 7) / 8 * 8;
+    c0 = std::min(n, t * chunk);
+    c1 = std::min(n, c0 + chunk);
+}
+
+// y = A * x (or y += A * x), splitting the columns of x and y over threads. y must already
+// have its size.
 template <class Lhs>
-inline void product_by_columns(const Lhs& A, const Mat& x, Mat& y) {
+inline void product_by_columns(const Lhs& A, const Mat& x, Mat& y, bool add = false) {
     const int n = (int)x.cols();
     const int threads = threads_for(2.0 * A.rows() * A.cols() * n);
     if (threads <= 1 || n < 16) {
-        y.noalias() = A * x;
+        if (add) y.noalias() += A * x;
+        else y.noalias() = A * x;
         return;
     }
 #ifdef _OPENMP
 #pragma omp parallel num_threads(threads)
     {
-        const int t = omp_get_thread_num(), nt = omp_get_num_threads();
-        const int chunk = ((n + nt - 1) / nt + 7) / 8 * 8;  // multiples of 8 columns
-        const int c0 = std::min(n, t * chunk), c1 = std::min(n, c0 + chunk);
-        if (c1 > c0) y.middleCols(c0, c1 - c0).noalias() = A * x.middleCols(c0, c1 - c0);
+        int c0, c1;
+        thread_columns(n, omp_get_thread_num(), omp_get_num_threads(), c0, c1);
+        if (c1 > c0) {
+            if (add) y.middleCols(c0, c1 - c0).noalias() += A * x.middleCols(c0, c1 - c0);
+            else y.middleCols(c0, c1 - c0).noalias() = A * x.middleCols(c0, c1 - c0);
+        }
+    }
+#endif
+}
+
+// dW += dy * x^T (a weight gradient), splitting the columns of dW (rows of x) over threads.
+inline void add_product_transposed(Eigen::Map<Mat> dW, const Mat& dy, const Mat& x) {
+    const int n = (int)dW.cols();
+    const int threads = threads_for(2.0 * dW.rows() * n * dy.cols());
+    if (threads <= 1 || n < 16) {
+        dW.noalias() += dy * x.transpose();
+        return;
+    }
+#ifdef _OPENMP
+#pragma omp parallel num_threads(threads)
+    {
+        int c0, c1;
+        thread_columns(n, omp_get_thread_num(), omp_get_num_threads(), c0, c1);
+        if (c1 > c0) dW.middleCols(c0, c1 - c0).noalias() += dy * x.middleRows(c0, c1 - c0).transpose();
     }
 #endif
 }
@@ -259,10 +288,10 @@ struct Linear {
     }
     void backward(const Mat& x, const Mat& dy, Mat& dx) {
         MADBP_ASSERT(dy.rows() == out && dy.cols() == x.cols());
-        ps->grad_view(w, out, in).noalias() += dy * x.transpose();
+        detail::add_product_transposed(ps->grad_view(w, out, in), dy, x);
         if (b >= 0) ps->grad_vec(b, out) += dy.rowwise().sum();
         dx.resize(in, x.cols());
-        dx.noalias() = ps->view(w, out, in).transpose() * dy;
+        detail::product_by_columns(ps->view(w, out, in).transpose(), dy, dx);
     }
 };
 
@@ -398,10 +427,10 @@ struct MultiHeadAttention {
         dy_live = dy;  // dead items pass no gradient (their output is a constant 0)
         for (int b = 0; b < B; ++b)
             if (dead[b]) dy_live.middleCols((long)b * Lq, Lq).setZero();
-        ps->grad_view(wo, D, D).noalias() += dy_live * ctx.transpose();
+        detail::add_product_transposed(ps->grad_view(wo, D, D), dy_live, ctx);
         ps->grad_vec(bo, D) += dy_live.rowwise().sum();
         dctx.resize(D, (long)Lq * B);
-        dctx.noalias() = ps->view(wo, D, D).transpose() * dy_live;
+        detail::product_by_columns(ps->view(wo, D, D).transpose(), dy_live, dctx);
         dQ.resize(D, (long)Lq * B);
         dK.resize(D, (long)Lk * B);
         dV.resize(D, (long)Lk * B);
@@ -443,13 +472,13 @@ struct MultiHeadAttention {
         out.colwise() += ps->vec(b, D);
     }
     void project_backward(int w, int b, const Mat& x, const Mat& dout, Mat& dx, bool accumulate) {
-        ps->grad_view(w, D, D).noalias() += dout * x.transpose();
+        detail::add_product_transposed(ps->grad_view(w, D, D), dout, x);
         ps->grad_vec(b, D) += dout.rowwise().sum();
         if (accumulate) {
-            dx.noalias() += ps->view(w, D, D).transpose() * dout;
+            detail::product_by_columns(ps->view(w, D, D).transpose(), dout, dx, true);
         } else {
             dx.resize(D, x.cols());
-            dx.noalias() = ps->view(w, D, D).transpose() * dout;
+            detail::product_by_columns(ps->view(w, D, D).transpose(), dout, dx);
         }
     }
 };
@@ -507,10 +536,10 @@ struct Conv1d {
         y.colwise() += ps->vec(b, cout);
     }
     void backward(const Mat& x, int T, const Mat& dy, Mat& dx) {
-        ps->grad_view(w, cout, k * cin).noalias() += dy * cols.transpose();
+        detail::add_product_transposed(ps->grad_view(w, cout, k * cin), dy, cols);
         ps->grad_vec(b, cout) += dy.rowwise().sum();
         dcols.resize((long)k * cin, dy.cols());
-        dcols.noalias() = ps->view(w, cout, k * cin).transpose() * dy;
+        detail::product_by_columns(ps->view(w, cout, k * cin).transpose(), dy, dcols);
         detail::col2im_1d(dcols, T, k, cin, dx);
     }
 };
@@ -557,9 +586,9 @@ struct ConvTranspose1d {
                     if (to >= 0 && to < 2 * T) d = dy.col((long)bi * 2 * T + to);
                     else d.setZero();
                 }
-        ps->grad_view(w, k * cout, cin).noalias() += dcols * x.transpose();
+        detail::add_product_transposed(ps->grad_view(w, k * cout, cin), dcols, x);
         dx.resize(cin, x.cols());
-        dx.noalias() = ps->view(w, k * cout, cin).transpose() * dcols;
+        detail::product_by_columns(ps->view(w, k * cout, cin).transpose(), dcols, dx);
     }
 };
 
@@ -729,10 +758,10 @@ struct Conv2d {
     void backward(const Mat& x, int H_, int W_, const Mat& dy, Mat& dx) {
         MADBP_ASSERT(H_ == H && W_ == W);
         const long B = x.cols() / ((long)H * W);
-        ps->grad_view(w, cout, k * k * cin).noalias() += dy * cols.transpose();
+        detail::add_product_transposed(ps->grad_view(w, cout, k * k * cin), dy, cols);
         ps->grad_vec(b, cout) += dy.rowwise().sum();
         dcols.resize(cols.rows(), cols.cols());
-        dcols.noalias() = ps->view(w, cout, k * k * cin).transpose() * dy;
+        detail::product_by_columns(ps->view(w, cout, k * k * cin).transpose(), dy, dcols);
         dx.setZero(cin, x.cols());
         for_each_tap(B, [&](long col, int row, long in) {
             if (in >= 0) dx.col(in) += dcols.col(col).segment(row, cin);

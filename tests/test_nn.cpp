@@ -528,19 +528,33 @@ TEST_CASE("nn: self-attention gradients (same matrix twice, input gradients summ
     gc.check(y);
 }
 
-TEST_CASE("nn: attention forward splits work over threads with the same result") {
+TEST_CASE("nn: layers split work over threads with the same results, forward and backward") {
     Rng rng(8);
     ParamStore ps;
-    madbp::MultiHeadAttention att(ps, "att", 64, 4, rng);
-    const int L = 16, B = 32;  // large enough to take the OpenMP path
-    Mat x = randn(64, L * B, rng), y1, y2;
+    const int D = 64, L = 16, B = 32;  // large enough to take the OpenMP paths
+    madbp::MultiHeadAttention att(ps, "att", D, 4, rng);
+    madbp::Conv1d conv(ps, "conv", D, D, 5, rng);
+    Mat x = randn(D, L * B, rng), dy = randn(D, L * B, rng);
     std::vector<float> mask(L * B, 1.0f);
     for (int i = 0; i < L * B; i += 3) mask[i] = 0;
-    madbp::set_num_threads(1);
-    att.forward(x, L, x, L, B, mask.data(), y1);
-    madbp::set_num_threads(2);
-    att.forward(x, L, x, L, B, mask.data(), y2);
-    CHECK((y1 - y2).cwiseAbs().maxCoeff() < 1e-5);
+    Mat y[2], dq[2], dkv[2], dx[2], yc[2];
+    Vec grad[2];
+    for (int t = 0; t < 2; ++t) {
+        madbp::set_num_threads(t + 1);
+        ps.zero_grad();
+        att.forward(x, L, x, L, B, mask.data(), y[t]);
+        att.backward(x, L, x, L, B, mask.data(), dy, dq[t], dkv[t]);
+        conv.forward(x, L, yc[t]);
+        conv.backward(x, L, dy, dx[t]);
+        grad[t] = ps.grad;
+    }
+    auto close = [](const auto& a, const auto& b) { return (a - b).cwiseAbs().maxCoeff() <= 1e-5 * (1 + a.cwiseAbs().maxCoeff()); };
+    CHECK(close(y[0], y[1]));
+    CHECK(close(dq[0], dq[1]));
+    CHECK(close(dkv[0], dkv[1]));
+    CHECK(close(yc[0], yc[1]));
+    CHECK(close(dx[0], dx[1]));
+    CHECK(close(grad[0], grad[1]));
 }
 
 // ---------------------------------------------------------------------------------------------
@@ -1029,7 +1043,9 @@ TEST_CASE("nn: a steady-state forward pass allocates nothing") {
     madbp::LayerNorm ln(ps, "ln", D, rng);
     madbp::MultiHeadAttention att(ps, "att", D, 4, rng);
     madbp::Conv1d conv(ps, "conv", D, D, 5, rng);
-    madbp::BatchNorm1d bn(ps, "bn", D, rng);
+    madbp::BatchNorm1d bn(ps, "bn", D, rng), bn_eval(ps, "bn_eval", D, rng);
+    bn_eval.training = false;
+    madbp::MultiHeadAttention cross(ps, "cross", D, 4, rng);
     madbp::MaxPool1d pool;
     madbp::Upsample1d up;
     madbp::ConvTranspose1d upconv(ps, "upconv", D, D, rng);
@@ -1039,12 +1055,13 @@ TEST_CASE("nn: a steady-state forward pass allocates nothing") {
     madbp::ReLU relu;
     madbp::Tanh tanh_;
     madbp::Embedding emb(ps, "emb", 10, D, rng);
+    Mat queries = randn(D, 8 * B, rng);
     Mat x = randn(D, T * B, rng), grid = randn(1, 32 * 32 * 2, rng), gamma = randn(D, B, rng), beta = randn(D, B, rng);
     std::vector<float> mask(T * B, 1.0f), steps(B);
     std::vector<int> ids(B);
     for (int i = 0; i < T * B; i += 5) mask[i] = 0;
     for (int b = 0; b < B; ++b) steps[b] = (float)b, ids[b] = b % 10;
-    Mat h1, h2, h3, h4, h5, h6, h7, h8, h9, h10, h11, h12, h13, g1, e1, e2;
+    Mat h1, h2, h3, h4, h5, h6, h7, h8, h9, h10, h11, h12, h13, g1, e1, e2, c1, c2;
     auto forward = [&] {
         lin.forward(x, h1);
         ln.forward(h1, h2);
@@ -1062,6 +1079,8 @@ TEST_CASE("nn: a steady-state forward pass allocates nothing") {
         conv2d.forward(grid, 32, 32, g1);
         emb.forward(ids.data(), B, e1);
         madbp::sinusoidal_embedding(steps.data(), B, D, e2);
+        bn_eval.forward(h4, nullptr, c1);
+        cross.forward(queries, 8, h2, T, B, nullptr, c2);  // 8 queries per item, T keys, no mask
     };
     for (int threads : {1, 2}) {
         madbp::set_num_threads(threads);
