@@ -398,6 +398,7 @@ struct TrainConfig {
     std::string out;              // model file; training state in out + ".train"; CSV in out + ".csv"
     bool resume = false;
     uint64_t seed = 0;
+    int threads = 1;              // data-parallel replicas, each on its share of the batch (results depend on it)
     bool quiet = false;
     // Called after every optimizer step; returning false stops training there (a time budget,
     // early stopping, or a test's simulated kill). Checkpoints already written stay valid.
@@ -674,7 +675,12 @@ inline TrainReport train(const DemoSet& demos, MadbpModel& model, const TrainCon
     adam.lr = tc.lr;
     Ema ema;
     ema.decay = tc.ema_decay;
-    Rng rng(tc.seed);
+    // Data parallelism: replica r trains on its share of the batch with its own random stream;
+    // gradients (and BatchNorm running statistics) are averaged weighted by the shares.
+    const int R = std::max(1, std::min(tc.threads, tc.batch));
+    std::vector<Rng> rngs;
+    for (int r = 0; r < R; ++r) rngs.emplace_back(tc.seed + 0x9E3779B97F4A7C15ull * r);
+    Rng& rng = rngs[0];
     long step = 0;
     std::vector<CurveRow> curve;
     const std::string state_path = tc.out + ".train", csv_path = tc.out + ".csv";
@@ -686,6 +692,8 @@ inline TrainReport train(const DemoSet& demos, MadbpModel& model, const TrainCon
         read_adam(st, model.params->size(), adam);
         read_ema(st, model.params->size(), ema);
         read_rng(st, "train.rng", rng);
+        for (int r = 1; r < R; ++r)
+            if (st.metadata.count("train.rng." + std::to_string(r))) read_rng(st, "train.rng." + std::to_string(r), rngs[r]);
         step = adam.step;
         std::ifstream csv(csv_path);
         std::string line;
@@ -700,7 +708,7 @@ inline TrainReport train(const DemoSet& demos, MadbpModel& model, const TrainCon
     if (ema.shadow.size() != model.params->size()) ema.shadow = model.params->value;
 
     model.set_training(true);
-    TrainBatch tb, vb;
+    TrainBatch vb;
     LossWorkspace ws;
     TrainReport rep;
     auto t_start = std::chrono::steady_clock::now();
@@ -734,6 +742,7 @@ inline TrainReport train(const DemoSet& demos, MadbpModel& model, const TrainCon
         append_adam(adam, tensors, md);
         append_ema(ema, tensors, md);
         append_rng(rng, "train.rng", md);
+        for (int r = 1; r < R; ++r) append_rng(rngs[r], "train.rng." + std::to_string(r), md);
         save_safetensors(state_path, tensors, md);
         std::string csv = "step,n_curr,train_total,train_noise,train_boundary,train_temporal,train_collision,val_total\n";
         for (const CurveRow& r : curve) {
@@ -745,11 +754,51 @@ inline TrainReport train(const DemoSet& demos, MadbpModel& model, const TrainCon
         write_file_atomic(csv_path, std::vector<uint8_t>(csv.begin(), csv.end()));
         write_loss_svg(tc.out + ".svg", curve);
     };
+    std::vector<MadbpModel> clones;
+    std::vector<MadbpModel*> replica = {&model};
+    std::vector<TrainConfig> share(R, tc);
+    std::vector<TrainBatch> batches(R);
+    std::vector<LossWorkspace> spaces(R);
+    std::vector<LossTerms> losses(R);
+    for (int r = 1; r < R; ++r) clones.push_back(model.clone());
+    for (int r = 1; r < R; ++r) replica.push_back(&clones[r - 1]);
+    for (int r = 0; r < R; ++r) share[r].batch = tc.batch / R + (r < tc.batch % R ? 1 : 0);
     while (step < tc.steps) {
         const int n_curr = curriculum_agents(step, tc);
-        make_train_batch(demos, train_windows, mc, tc, n_curr, rng, tb);
-        model.params->zero_grad();
-        LossTerms l = diffusion_loss(model, schedule, tb, tc, rng, true, ws);
+        std::string error;
+#pragma omp parallel for num_threads(R) schedule(static, 1)
+        for (int r = 0; r < R; ++r) {
+            try {
+                if (r > 0) replica[r]->params->value = model.params->value;
+                replica[r]->set_training(true);
+                make_train_batch(demos, train_windows, mc, share[r], n_curr, rngs[r], batches[r]);
+                replica[r]->params->zero_grad();
+                losses[r] = diffusion_loss(*replica[r], schedule, batches[r], share[r], rngs[r], true, spaces[r]);
+            } catch (const std::exception& e) {
+#pragma omp critical
+                error = e.what();
+            }
+        }
+        if (!error.empty()) throw std::runtime_error("train: " + error);
+        LossTerms l = losses[0];
+        if (R > 1) {
+            l = LossTerms{};
+            for (int r = 0; r < R; ++r) {
+                const double w = (double)share[r].batch / tc.batch;
+                l.noise += w * losses[r].noise, l.boundary += w * losses[r].boundary, l.temporal += w * losses[r].temporal;
+                l.collision += w * losses[r].collision, l.total += w * losses[r].total;
+            }
+            ParamStore& main = *model.params;
+            main.grad *= (float)share[0].batch / tc.batch;
+            for (const auto& e : main.entries)
+                if (!e.trainable) main.value.segment(e.offset, e.numel()) *= (float)share[0].batch / tc.batch;
+            for (int r = 1; r < R; ++r) {
+                const float w = (float)share[r].batch / tc.batch;
+                main.grad += w * replica[r]->params->grad;
+                for (const auto& e : main.entries)
+                    if (!e.trainable) main.value.segment(e.offset, e.numel()) += w * replica[r]->params->value.segment(e.offset, e.numel());
+            }
+        }
         if (!std::isfinite(l.total)) throw std::runtime_error("train: loss became non-finite at step " + std::to_string(step));
         clip_grad_norm(*model.params, tc.clip);
         adam.update(*model.params);

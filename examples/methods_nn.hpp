@@ -123,7 +123,8 @@ inline int cmd_train(Args& a) {
             "  --weights a,b,c,d  loss weights noise,boundary,temporal,collision (default .85,.025,.025,.1)\n"
             "  --horizon H --dim D --heads K --channels C1,C2 --kernel K --n-max N --grid G\n"
             "  --processor AAP|LE --window MW|CT   model configuration (SPEC 5; defaults in README)\n"
-            "  --checkpoint-every N (default 1000)   --threads T (default 1)   --seed S (default 0)\n"
+            "  --checkpoint-every N (default 1000)   --seed S (default 0)\n"
+            "  --threads T        data-parallel replicas (default 2); results depend on T, not on the machine\n"
             "  --json             print the final losses as JSON\n");
         return 0;
     }
@@ -166,10 +167,11 @@ inline int cmd_train(Args& a) {
     if (win != "MW" && win != "CT") throw std::invalid_argument("--window: expected MW or CT, got '" + win + "'");
     mc.processor = proc == "AAP" ? madbp::Processor::AAP : madbp::Processor::LE;
     mc.window = win == "MW" ? madbp::WindowMode::MW : madbp::WindowMode::CT;
-    int threads = (int)a.integer("--threads", 1, 1, 256);
+    int threads = (int)a.integer("--threads", 2, 1, 256);
     bool json = a.flag("--json");
     a.finish();
     mc.validate();
+    tc.threads = threads;
     madbp::set_num_threads(threads);
     madbp::DemoSet demos = madbp::load_demos(data);
     madbp::MadbpModel model(mc, tc.seed);
