@@ -39,8 +39,11 @@ using VecD = Eigen::VectorXd;
 #define MADBP_TEST_COUNT_ALLOCS 1
 #endif
 
-static std::atomic<bool> g_count_allocs{false};
-static std::atomic<long> g_allocs{0};
+// Not static: another test file may count too, with
+//   extern std::atomic<bool> g_count_allocs; extern std::atomic<long> g_allocs;
+// (0 allocations counted under AddressSanitizer; check MADBP_TEST_COUNT_ALLOCS's logic there).
+std::atomic<bool> g_count_allocs{false};
+std::atomic<long> g_allocs{0};
 
 #if MADBP_TEST_COUNT_ALLOCS
 extern "C" {
@@ -98,6 +101,18 @@ void operator delete[](void* p, size_t) noexcept { __libc_free(p); }
 
 // ---------------------------------------------------------------------------------------------
 // Helpers.
+
+// Restores the default thread settings (OpenMP's count, Eigen's own GEMM threading) for the
+// tests that follow in the same binary.
+struct ThreadSettingsGuard {
+#ifdef _OPENMP
+    int omp_threads = omp_get_max_threads();
+    ~ThreadSettingsGuard() {
+        omp_set_num_threads(omp_threads);
+        Eigen::setNbThreads(0);  // 0: follow OpenMP again
+    }
+#endif
+};
 
 static Mat randn(long rows, long cols, Rng& rng, double scale = 1.0) {
     Mat m(rows, cols);
@@ -538,6 +553,7 @@ TEST_CASE("nn: layers split work over threads with the same results, forward and
     std::vector<float> mask(L * B, 1.0f);
     for (int i = 0; i < L * B; i += 3) mask[i] = 0;
     Mat y[2], dq[2], dkv[2], dx[2], yc[2];
+    ThreadSettingsGuard restore;
     Vec grad[2];
     for (int t = 0; t < 2; ++t) {
         madbp::set_num_threads(t + 1);
@@ -1082,6 +1098,7 @@ TEST_CASE("nn: a steady-state forward pass allocates nothing") {
         bn_eval.forward(h4, nullptr, c1);
         cross.forward(queries, 8, h2, T, B, nullptr, c2);  // 8 queries per item, T keys, no mask
     };
+    ThreadSettingsGuard restore;
     for (int threads : {1, 2}) {
         madbp::set_num_threads(threads);
         forward();  // first pass sizes every buffer
