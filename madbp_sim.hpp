@@ -1291,9 +1291,9 @@ inline std::vector<int> wavefront(const ClearanceGrid& cg, int goal_cell, double
 struct ExpertParams {
     double cell = 0.036;          // planning cell, world units (distance per step at cruise)
     double inflate = 0.13;        // clearance kept from obstacles and walls (radius + 0.03), world units
-    double buffer = 0.08;         // planned centres of two agents stay >= 2 r + buffer apart, world units
+    double buffer = 0.04;         // planned centres of two agents stay >= 2 r + buffer apart (the filter keeps 2 r + 0.03), world units
     double conflict_cost = 8;     // extra cost of a step inside another agent's reservation, steps
-    int hold = 3;                 // a planned position stays reserved from one step before to `hold` steps after, for lag
+    int hold = 1;                 // a planned position stays reserved from one step before to `hold` steps after, for lag
     int replan_every = 5;         // steps between plans, >= 1
     double replan_error = 0.1;    // replan early when an agent is this far from its waypoint, world units
     int extra_horizon = 20;       // plans may run this many steps past the episode's step limit
