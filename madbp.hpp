@@ -81,7 +81,6 @@
 #include <limits>
 #include <map>
 #include <memory>
-#include <numeric>
 #include <stdexcept>
 #include <string>
 #include <sys/stat.h>
@@ -119,7 +118,7 @@ inline int max_threads() {
 }
 
 // Threads worth using for `flops` of work: a parallel region costs a few microseconds, so
-// below ~1 MFLOP (about 50 us on one core) one thread is faster.
+// below ~1 MFLOP (under 10 us on one core) one thread is faster.
 inline int threads_for(double flops) {
     int t = max_threads();
     if (t <= 1 || flops < 1e6) return 1;
@@ -346,7 +345,8 @@ struct LayerNorm {
 // Multi-head attention: q_in (D, Lq*B), kv_in (D, Lk*B) -> y (D, Lq*B). Wq, Wk, Wv, Wo (D, D)
 // listed {D, D}, biases (D). key_mask: Lk*B of 0/1 (1 = attend) or nullptr. An item whose
 // keys are all masked outputs 0 and passes no gradient. backward takes forward's arguments,
-// then dy, then writes dq_in and dkv_in (self-attention: pass x twice, add the two).
+// then dy, then writes dq_in and dkv_in, which must be two different matrices (self-attention:
+// pass x twice, add the two). The (item, head) loop runs on OpenMP threads when large enough.
 struct MultiHeadAttention {
     ParamStore* ps = nullptr;
     int D = 0, heads = 0, wq = -1, bq = -1, wk = -1, bk = -1, wv = -1, bv = -1, wo = -1, bo = -1;
