@@ -31,6 +31,8 @@ struct ModelConfig {
     int heads = 4;                     // attention heads, divides dim
     int n_max = 32;                    // agent slots of PE_agent: the largest team the model plans for
     int grid = 32;                     // G, occupancy grid side, multiple of 8
+    int local_grid = 16;               // side of each agent's own crop of the map (0: none), multiple of 4
+    float local_extent = 0.8f;         // the crop covers +-local_extent world units around the agent
     std::vector<int> channels = {32, 64};  // U-Net widths per level (levels = size)
     int kernel = 5;                    // U-Net Conv1d kernel, odd
     int diffusion_steps = 100;         // K (training)
@@ -52,6 +54,8 @@ struct ModelConfig {
         if (dim < 4 || dim % 2 || heads < 1 || dim % heads) bad("dim/heads", "dim must be even, >= 4 and divisible by heads");
         if (n_max < 1 || n_max > 1024) bad("n_max", "must be in [1, 1024]");
         if (grid < 8 || grid % 8) bad("grid", "must be a positive multiple of 8");
+        if (local_grid < 0 || local_grid % 4 || local_grid > 256) bad("local_grid", "must be 0 or a multiple of 4 up to 256");
+        if (!(local_extent > 0) || !std::isfinite(local_extent)) bad("local_extent", "must be positive");
         if (kernel < 1 || kernel % 2 == 0) bad("kernel", "must be odd");
         if (diffusion_steps < 2 || sample_steps < 1 || sample_steps > diffusion_steps) bad("sample_steps", "must be in [1, diffusion_steps]");
         if (!(position_scale > 0) || !std::isfinite(position_scale)) bad("position_scale", "must be positive");
@@ -62,14 +66,16 @@ struct ModelConfig {
         for (size_t i = 0; i < channels.size(); ++i) ch += (i ? "," : "") + std::to_string(channels[i]);
         char scale[32];
         std::snprintf(scale, sizeof scale, "%.9g", position_scale);
-        char wscale[32];
+        char wscale[32], lext[32];
         std::snprintf(wscale, sizeof wscale, "%.9g", window_scale);
+        std::snprintf(lext, sizeof lext, "%.9g", local_extent);
         return {{"model", "madbp"}, {"horizon", std::to_string(horizon)}, {"dim", std::to_string(dim)},
                 {"heads", std::to_string(heads)}, {"n_max", std::to_string(n_max)}, {"grid", std::to_string(grid)},
                 {"channels", ch}, {"kernel", std::to_string(kernel)}, {"diffusion_steps", std::to_string(diffusion_steps)},
                 {"sample_steps", std::to_string(sample_steps)}, {"processor", processor == Processor::AAP ? "AAP" : "LE"},
                 {"window", window == WindowMode::MW ? "MW" : "CT"}, {"position_scale", scale}, {"window_scale", wscale},
-                {"prediction", prediction == Prediction::Eps ? "eps" : "x0"}};
+                {"prediction", prediction == Prediction::Eps ? "eps" : "x0"}, {"local_grid", std::to_string(local_grid)},
+                {"local_extent", lext}};
     }
     static ModelConfig from_metadata(const std::map<std::string, std::string>& md, const std::string& source) {
         auto get = [&](const std::string& k) -> const std::string& {
@@ -96,6 +102,7 @@ struct ModelConfig {
         c.kernel = integer("kernel");
         c.diffusion_steps = integer("diffusion_steps");
         c.sample_steps = integer("sample_steps");
+        c.local_grid = integer("local_grid");
         c.channels.clear();
         std::stringstream ss(get("channels"));
         std::string item;
@@ -115,6 +122,7 @@ struct ModelConfig {
         try {
             c.position_scale = std::stof(get("position_scale"));
             c.window_scale = std::stof(get("window_scale"));
+            c.local_extent = std::stof(get("local_extent"));
         } catch (const std::runtime_error&) {
             throw;
         } catch (...) {
@@ -136,9 +144,10 @@ struct SceneBatch {
     std::vector<int> count;         // (B) active agents per scene (n_a)
     Mat pose;                       // (4, A) normalised current position x, y and goal x, y
     Mat grid;                       // (1, G*G*B) occupancy grid per scene, column b*G*G + row*G + col
+    Mat local;                      // (1, Gl*Gl*A) each agent's crop of the map (local_crop), when Gl > 0
 
     int agents() const { return B * n; }
-    void resize(int B_, int n_, int G) {
+    void resize(int B_, int n_, int G, int Gl = 0) {
         B = B_;
         n = n_;
         agent_mask.assign((size_t)B * n, 0.0f);
@@ -146,8 +155,25 @@ struct SceneBatch {
         count.assign(B, 0);
         pose.setZero(4, B * n);
         grid.setZero(1, (long)G * G * B);
+        local.setZero(1, (long)Gl * Gl * B * n);
     }
+    void resize(int B_, int n_, const ModelConfig& c) { resize(B_, n_, c.grid, c.local_grid); }
 };
+
+// An agent's own view of the static map: Gl x Gl cells of width 2 * extent / Gl centred on p
+// (world units), row-major from the lowest y; a cell is 1 when an obstacle or wall surface is
+// within half a cell of its centre (so thin walls are never missed) or it lies beyond the walls.
+inline void local_crop(const Map& map, Vec2 p, int Gl, double extent, float* out) {
+    const double w = 2 * extent / Gl;
+    for (int row = 0; row < Gl; ++row)
+        for (int col = 0; col < Gl; ++col) {
+            const Vec2 c{p.x - extent + (col + 0.5) * w, p.y - extent + (row + 0.5) * w};
+            out[row * Gl + col] = static_clearance(map, c) < 0.5 * w ? 1.0f : 0.0f;
+        }
+}
+inline void fill_local_crop(SceneBatch& batch, int a, const Map& map, Vec2 p, const ModelConfig& c) {
+    if (c.local_grid > 0) local_crop(map, p, c.local_grid, c.local_extent, batch.local.data() + (long)a * c.local_grid * c.local_grid);
+}
 
 namespace detail {
 // x (C, H*A) agent-major (column a*H + t, a = b*n + i) <-> y (C, n*B*H) time-major
@@ -272,6 +298,15 @@ public:
         e.pose1.forward(batch.pose, e.p1);
         e.pose_act.forward(e.p1, e.p1a);
         e.pose2.forward(e.p1a, e.pose_tok);
+        if (c.local_grid > 0) {  // each agent's own crop of the map, added to its pose token
+            const int Gl = c.local_grid;
+            e.l1.forward(batch.local, Gl, Gl, e.l1o);
+            e.r3.forward(e.l1o, e.l1a);
+            e.l2.forward(e.l1a, Gl / 2, Gl / 2, e.l2o);
+            e.r4.forward(e.l2o, e.l2a);
+            e.l3.forward(e.l2a, Gl / 4, Gl / 4, e.tmp);
+            e.pose_tok += e.tmp;
+        }
         e.count_ids.assign(batch.count.begin(), batch.count.end());
         e.count_emb.forward(e.count_ids.data(), B, e.count_tok);
         // Keys of scene b: its P image tokens, its n pose tokens (inactive masked), its count token.
@@ -344,8 +379,8 @@ private:
     std::vector<float> colmask_[5];  // per U-Net resolution: (T_l * A) active-agent column masks
 
     struct Encoder {
-        Conv2d g1, g2, g3;
-        ReLU r1, r2;
+        Conv2d g1, g2, g3, l1, l2, l3;
+        ReLU r1, r2, r3, r4;
         Embedding pe_img, count_emb;
         Linear pose1, pose2;
         Mish pose_act;
@@ -353,7 +388,8 @@ private:
         LayerNorm ln;
         std::vector<int> img_ids, count_ids;
         std::vector<float> kv_mask;
-        Mat g1o, g1a, g2o, g2a, img, tmp, p1, p1a, pose_tok, count_tok, kv, att, pre_ln;
+        Mat g1o, g1a, g2o, g2a, img, tmp, p1, p1a, pose_tok, count_tok, kv, att, pre_ln, l1o, l1a, l2o, l2a;
+        Mat d_l1o, d_l1a, d_l2o, d_l2a, d_local;
         Mat d_pre, d_pose, d_kv, d_img, d_g2a, d_g2o, d_g1a, d_g1o, d_grid, d_p1a, d_p1, d_posein, d_count;
     } enc_;
     struct StepEmbed {
@@ -410,6 +446,11 @@ private:
         e.pe_img = Embedding(ps, "ctx.pe_img", c.image_tokens(), D, rng);
         e.pose1 = Linear(ps, "ctx.pose1", 4, D, rng);
         e.pose2 = Linear(ps, "ctx.pose2", D, D, rng);
+        if (c.local_grid > 0) {
+            e.l1 = Conv2d(ps, "ctx.local1", 1, 8, 3, 2, 1, rng);
+            e.l2 = Conv2d(ps, "ctx.local2", 8, 16, 3, 2, 1, rng);
+            e.l3 = Conv2d(ps, "ctx.local3", 16, D, c.local_grid / 4, 1, 0, rng);  // the whole 4x4-reduced crop -> one token
+        }
         e.count_emb = Embedding(ps, "ctx.count", c.n_max + 1, D, rng);
         e.fuse = MultiHeadAttention(ps, "ctx.fuse", D, c.heads, rng);
         e.ln = LayerNorm(ps, "ctx.ln", D, rng);
@@ -444,7 +485,8 @@ private:
         if (b.n > config.n_max)
             throw std::invalid_argument("scene batch: " + std::to_string(b.n) + " agent slots exceed the model's n_max = " + std::to_string(config.n_max));
         if ((long)b.agent_mask.size() != A || (long)b.slot.size() != A || (long)b.count.size() != b.B || b.pose.rows() != 4 ||
-            b.pose.cols() != A || b.grid.rows() != 1 || b.grid.cols() != (long)config.grid * config.grid * b.B)
+            b.pose.cols() != A || b.grid.rows() != 1 || b.grid.cols() != (long)config.grid * config.grid * b.B ||
+            b.local.cols() != (long)config.local_grid * config.local_grid * A)
             throw std::invalid_argument("scene batch: array sizes do not match B = " + std::to_string(b.B) + ", n = " + std::to_string(b.n));
         for (int s = 0; s < b.B; ++s)
             if (b.count[s] < 0 || b.count[s] > config.n_max)
@@ -595,6 +637,14 @@ private:
         e.pose2.backward(e.p1a, e.d_pose, e.d_p1a);
         e.pose_act.backward(e.p1, e.d_p1a, e.d_p1);
         e.pose1.backward(batch.pose, e.d_p1, e.d_posein);
+        if (config.local_grid > 0) {
+            const int Gl = config.local_grid;
+            e.l3.backward(e.l2a, Gl / 4, Gl / 4, e.d_pose, e.d_l2a);
+            e.r4.backward(e.l2o, e.d_l2a, e.d_l2o);
+            e.l2.backward(e.l1a, Gl / 2, Gl / 2, e.d_l2o, e.d_l1a);
+            e.r3.backward(e.l1o, e.d_l1a, e.d_l1o);
+            e.l1.backward(batch.local, Gl, Gl, e.d_l1o, e.d_local);
+        }
         e.pe_img.backward(e.img_ids.data(), P * B, e.d_img);
         e.g3.backward(e.g2a, G / 4, G / 4, e.d_img, e.d_g2a);
         e.r2.backward(e.g2o, e.d_g2a, e.d_g2o);
@@ -735,7 +785,7 @@ public:
         out.ids.resize(n);
         out.waypoints.resize(n);
         if (n == 0) { out.plan_ms = 0; return; }
-        if (batch_.B != 1 || batch_.n != n) batch_.resize(1, n, G);
+        if (batch_.B != 1 || batch_.n != n) batch_.resize(1, n, c);
         update_grid(world.map());
         for (int i = 0; i < n; ++i) {
             const Agent& a = world.agents()[i];
@@ -747,6 +797,7 @@ public:
             batch_.slot[i] = i;
             batch_.pose.col(i) << (float)(a.pos.x / c.position_scale), (float)(a.pos.y / c.position_scale),
                 (float)(a.goal.x / c.position_scale), (float)(a.goal.y / c.position_scale);
+            fill_local_crop(batch_, i, world.map(), a.pos, c);
         }
         batch_.count[0] = n;
         sample_windows(model_, schedule_, batch_, sampler, rng_, x_, eps_, steps_);

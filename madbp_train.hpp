@@ -446,7 +446,7 @@ inline void make_train_batch(const DemoSet& demos, const std::vector<WindowRef>&
     if (n_slots > mc.n_max) throw std::invalid_argument("train: windows with " + std::to_string(n_slots) + " agents exceed n_max");
     const int B = tc.batch, n = n_slots, H = mc.horizon, A = B * n, G = mc.grid;
     const float s = mc.position_scale, ws = mc.window_scale, reach = tc.goal_reach;
-    tb.scene.resize(B, n, G);
+    tb.scene.resize(B, n, mc);
     tb.x0.setZero(2, (long)H * A);
     tb.horizon_goal.setZero(2, A);
     tb.origin.setZero(2, A);
@@ -473,6 +473,7 @@ inline void make_train_batch(const DemoSet& demos, const std::vector<WindowRef>&
             const Vec2 start = mir(d.position(ref.t, src)), goal = mir(d.goals[src]);
             tb.scene.pose.col(a) << (float)(start.x / s), (float)(start.y / s), (float)(goal.x / s), (float)(goal.y / s);
             tb.origin.col(a) << (float)start.x, (float)start.y;
+            fill_local_crop(tb.scene, a, tb.maps[b], start, mc);
             for (int t = 0; t < H; ++t) {
                 const Vec2 p = mir(d.position(ref.t + t, src)) - start;
                 tb.x0.col((long)a * H + t) << (float)(p.x / ws), (float)(p.y / ws);
@@ -766,10 +767,12 @@ inline TrainReport train(const DemoSet& demos, MadbpModel& model, const TrainCon
     while (step < tc.steps) {
         const int n_curr = curriculum_agents(step, tc);
         std::string error;
+        // Sync before the parallel region: replica 0's BatchNorm writes its running statistics
+        // (part of the parameter vector) during the forward pass.
+        for (int r = 1; r < R; ++r) replica[r]->params->value = model.params->value;
 #pragma omp parallel for num_threads(R) schedule(static, 1)
         for (int r = 0; r < R; ++r) {
             try {
-                if (r > 0) replica[r]->params->value = model.params->value;
                 replica[r]->set_training(true);
                 make_train_batch(demos, train_windows, mc, share[r], n_curr, rngs[r], batches[r]);
                 replica[r]->params->zero_grad();

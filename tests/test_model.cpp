@@ -14,6 +14,7 @@ ModelConfig tiny_config(Processor p = Processor::AAP) {
     c.heads = 2;
     c.n_max = 6;
     c.grid = 8;
+    c.local_grid = 8;
     c.channels = {4, 6};
     c.kernel = 3;
     c.diffusion_steps = 20;
@@ -25,7 +26,7 @@ ModelConfig tiny_config(Processor p = Processor::AAP) {
 // B scenes, n slots; agent (b, i) is active when i < counts[b]. Random poses, one disc map.
 SceneBatch random_batch(const ModelConfig& c, int B, int n, const std::vector<int>& counts, Rng& rng) {
     SceneBatch s;
-    s.resize(B, n, c.grid);
+    s.resize(B, n, c);
     Map map;
     map.discs.push_back({Vec2{0.3, -0.2}, 0.3});
     Grid g = occupancy_grid(map, c.grid);
@@ -37,6 +38,7 @@ SceneBatch random_batch(const ModelConfig& c, int B, int n, const std::vector<in
             s.agent_mask[a] = i < counts[b] ? 1.0f : 0.0f;
             s.slot[a] = (i + 2 * b) % c.n_max;
             for (int r = 0; r < 4; ++r) s.pose(r, a) = (float)rng.uniform(-0.8, 0.8);
+            fill_local_crop(s, a, map, Vec2{s.pose(0, a) * c.position_scale, s.pose(1, a) * c.position_scale}, c);
         }
     }
     return s;
@@ -83,6 +85,7 @@ TEST_CASE("model: masked slots never change active agents' outputs") {
                     const int a = b * 4 + i;
                     x.middleCols((long)a * c.horizon, c.horizon).setConstant(37.0f);
                     s.pose.col(a).setConstant(-5.0f);
+                    s.local.middleCols((long)a * 64, 64).setConstant(1.0f);
                     s.slot[a] = c.n_max - 1;
                 }
             m.encode_context(s);
@@ -104,7 +107,7 @@ TEST_CASE("model: a padded batch gives the same outputs as an unpadded one") {
         SceneBatch tight = random_batch(c, 1, 3, {3}, rng);
         Mat x_tight = random_window(c, tight, rng);
         SceneBatch padded;
-        padded.resize(1, 5, c.grid);
+        padded.resize(1, 5, c);
         padded.grid = tight.grid;
         padded.count[0] = 3;
         Mat x_padded = Mat::Zero(2, (long)c.horizon * 5);
@@ -113,6 +116,8 @@ TEST_CASE("model: a padded batch gives the same outputs as an unpadded one") {
             padded.agent_mask[i] = 1;
             padded.slot[i] = tight.slot[i];
             padded.pose.col(i) = tight.pose.col(i);
+            const long L = (long)c.local_grid * c.local_grid;
+            padded.local.middleCols(i * L, L) = tight.local.middleCols(i * L, L);
             x_padded.middleCols((long)i * c.horizon, c.horizon) = agent_cols(x_tight, i, c.horizon);
         }
         padded.slot[3] = 4, padded.slot[4] = 5;

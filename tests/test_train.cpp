@@ -17,6 +17,7 @@ ModelConfig tiny_config() {
     c.heads = 2;
     c.n_max = 6;
     c.grid = 8;
+    c.local_grid = 8;
     c.channels = {8, 16};
     c.kernel = 3;
     c.diffusion_steps = 20;
