@@ -576,7 +576,7 @@ struct WorldBatch {
             throw std::invalid_argument("WorldBatch::step: got " + std::to_string(actions.size()) + " action lists for " +
                                         std::to_string(worlds.size()) + " worlds");
         std::string error;
-#pragma omp parallel for schedule(static)
+#pragma omp parallel for schedule(dynamic, 16)
         for (long w = 0; w < (long)worlds.size(); ++w) {
             try {
                 worlds[w].step(actions[w]);
