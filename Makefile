@@ -29,11 +29,11 @@ deps:
 	fi
 
 $(BUILD)/madbp: examples/madbp.cpp $(HEADERS) | deps
-	@mkdir -p build
+	@mkdir -p $(BUILD)
 	$(CXX) $(CXXFLAGS_FAST) -o $@ $< 
 
 $(BUILD)/%: examples/%.cpp $(HEADERS) | deps
-	@mkdir -p build
+	@mkdir -p $(BUILD)
 	$(CXX) $(CXXFLAGS_FAST) -o $@ $<
 
 $(BUILD)/tests/%.o: tests/%.cpp $(HEADERS) | deps

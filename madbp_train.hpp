@@ -20,7 +20,7 @@
 #ifndef MADBP_TRAIN_HPP
 #define MADBP_TRAIN_HPP
 
-#include "madbp_model_wip.hpp"
+#include "madbp.hpp"
 
 #include <array>
 #include <cstring>
@@ -610,19 +610,6 @@ struct TrainReport {
 inline int curriculum_agents(long step, const TrainConfig& tc) {
     const double ramp = std::max(1.0, (double)tc.curriculum_end * tc.steps);
     return std::min(tc.n_train_max, 1 + (int)(step / ramp * tc.n_train_max));
-}
-
-inline void save_model(const std::string& path, const MadbpModel& model, std::map<std::string, std::string> extra = {}) {
-    auto md = model.config.to_metadata();
-    for (auto& kv : extra) md[kv.first] = kv.second;
-    save_params(path, *model.params, md);
-}
-inline MadbpModel load_model(const std::string& path) {
-    SafeTensors st = load_safetensors(path);
-    MadbpModel model(ModelConfig::from_metadata(st.metadata, path));
-    read_param_tensors(st, *model.params);
-    model.set_training(false);
-    return model;
 }
 
 // Writes an SVG line plot of the loss curves (train total and validation total).

@@ -122,7 +122,8 @@ inline int cmd_train(Args& a) {
             "  --curriculum-end F fraction of training at which n_curr reaches N (default 0.5)\n"
             "  --weights a,b,c,d  loss weights noise,boundary,temporal,collision (default .85,.025,.025,.1)\n"
             "  --horizon H --dim D --heads K --channels C1,C2 --kernel K --n-max N --grid G\n"
-            "  --processor AAP|LE --window MW|CT   model configuration (SPEC 5; defaults in README)\n"
+            "  --processor AAP|LE --window MW|CT --prediction x0|eps --local-grid G (0: off)\n"
+            "  --window-scale W   model configuration (SPEC 5; defaults in README)\n"
             "  --checkpoint-every N (default 1000)   --seed S (default 0)\n"
             "  --threads T        data-parallel replicas (default 2); results depend on T, not on the machine\n"
             "  --json             print the final losses as JSON\n");
@@ -162,6 +163,11 @@ inline int cmd_train(Args& a) {
         mc.channels.clear();
         for (long c : a.integers("--channels", ch, 1, 1024)) mc.channels.push_back((int)c);
     }
+    mc.local_grid = (int)a.integer("--local-grid", mc.local_grid, 0, 256);
+    mc.window_scale = (float)a.real("--window-scale", mc.window_scale, 1e-3, 100);
+    std::string pred = a.str("--prediction", "x0");
+    if (pred != "x0" && pred != "eps") throw std::invalid_argument("--prediction: expected x0 or eps, got '" + pred + "'");
+    mc.prediction = pred == "x0" ? madbp::Prediction::X0 : madbp::Prediction::Eps;
     std::string proc = a.str("--processor", "AAP"), win = a.str("--window", "MW");
     if (proc != "AAP" && proc != "LE") throw std::invalid_argument("--processor: expected AAP or LE, got '" + proc + "'");
     if (win != "MW" && win != "CT") throw std::invalid_argument("--window: expected MW or CT, got '" + win + "'");

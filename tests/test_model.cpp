@@ -191,21 +191,25 @@ TEST_CASE("model: whole-model backward matches finite differences") {
 }
 
 namespace {
-// A denoiser that knows the answer: eps = (x - sqrt(ab) x0) / sqrt(1 - ab) for a fixed x0.
+// A denoiser that knows the answer for a fixed x0: eps = (x - sqrt(ab) x0) / sqrt(1 - ab), or
+// x0 itself, as config.prediction says.
 struct OracleDenoiser {
     ModelConfig config;
     const NoiseSchedule* schedule;
     Mat x0;
     void encode_context(const SceneBatch&) {}
-    void denoise(const Mat& x, const int* k, Mat& eps) {
+    void denoise(const Mat& x, const int* k, Mat& out) {
         const double ab = schedule->alpha_bar[k[0]];
-        eps = (x - (float)std::sqrt(ab) * x0) / (float)std::sqrt(1 - ab);
+        if (config.prediction == Prediction::X0) out = x0;
+        else out = (x - (float)std::sqrt(ab) * x0) / (float)std::sqrt(1 - ab);
     }
 };
 }  // namespace
 
 TEST_CASE("sampler: DDIM with an oracle recovers x0; inpainted starts are exact") {
-    const ModelConfig c = tiny_config();
+  for (Prediction pred : {Prediction::Eps, Prediction::X0}) {
+    ModelConfig c = tiny_config();
+    c.prediction = pred;
     NoiseSchedule sched(c.diffusion_steps);
     Rng rng(21);
     SceneBatch s = random_batch(c, 1, 3, {3}, rng);
@@ -234,6 +238,7 @@ TEST_CASE("sampler: DDIM with an oracle recovers x0; inpainted starts are exact"
     sample_windows(oracle, sched, s, sc, rng, x, eps, buf);
     CHECK(x(0, c.horizon - 1) == doctest::Approx(0.2 / c.window_scale));
     CHECK(x(1, c.horizon - 1) == doctest::Approx(-0.1 / c.window_scale));
+  }
 }
 
 TEST_CASE("noise schedule: cosine, monotone, DDIM steps") {
