@@ -1620,6 +1620,7 @@ enum class Prediction { Eps, X0 };     // the network predicts the noise (paper)
 
 struct ModelConfig {
     int horizon = 16;                  // H, waypoints per window incl. the current position; multiple of 2^levels
+    int waypoint_stride = 1;           // world steps between consecutive waypoints (the window spans (H-1)*stride steps)
     int dim = 64;                      // D, AAP / context embedding width
     int heads = 4;                     // attention heads, divides dim
     int n_max = 32;                    // agent slots of PE_agent: the largest team the model plans for
@@ -1650,6 +1651,7 @@ struct ModelConfig {
         if (local_grid < 0 || local_grid % 4 || local_grid > 256) bad("local_grid", "must be 0 or a multiple of 4 up to 256");
         if (!(local_extent > 0) || !std::isfinite(local_extent)) bad("local_extent", "must be positive");
         if (kernel < 1 || kernel % 2 == 0) bad("kernel", "must be odd");
+        if (waypoint_stride < 1 || waypoint_stride > 16) bad("waypoint_stride", "must be in [1, 16]");
         if (diffusion_steps < 2 || sample_steps < 1 || sample_steps > diffusion_steps) bad("sample_steps", "must be in [1, diffusion_steps]");
         if (!(position_scale > 0) || !std::isfinite(position_scale)) bad("position_scale", "must be positive");
         if (!(window_scale > 0) || !std::isfinite(window_scale)) bad("window_scale", "must be positive");
@@ -1662,7 +1664,7 @@ struct ModelConfig {
         char wscale[32], lext[32];
         std::snprintf(wscale, sizeof wscale, "%.9g", window_scale);
         std::snprintf(lext, sizeof lext, "%.9g", local_extent);
-        return {{"model", "madbp"}, {"horizon", std::to_string(horizon)}, {"dim", std::to_string(dim)},
+        return {{"model", "madbp"}, {"horizon", std::to_string(horizon)}, {"waypoint_stride", std::to_string(waypoint_stride)}, {"dim", std::to_string(dim)},
                 {"heads", std::to_string(heads)}, {"n_max", std::to_string(n_max)}, {"grid", std::to_string(grid)},
                 {"channels", ch}, {"kernel", std::to_string(kernel)}, {"diffusion_steps", std::to_string(diffusion_steps)},
                 {"sample_steps", std::to_string(sample_steps)}, {"processor", processor == Processor::AAP ? "AAP" : "LE"},
@@ -1688,6 +1690,7 @@ struct ModelConfig {
         if (get("model") != "madbp") throw std::runtime_error(source + ": not an MA-DBP checkpoint (model = '" + get("model") + "')");
         ModelConfig c;
         c.horizon = integer("horizon");
+        c.waypoint_stride = integer("waypoint_stride");
         c.dim = integer("dim");
         c.heads = integer("heads");
         c.n_max = integer("n_max");
@@ -1897,8 +1900,8 @@ public:
             e.r3.forward(e.l1o, e.l1a);
             e.l2.forward(e.l1a, Gl / 2, Gl / 2, e.l2o);
             e.r4.forward(e.l2o, e.l2a);
-            e.l3.forward(e.l2a, Gl / 4, Gl / 4, e.tmp);
-            e.pose_tok += e.tmp;
+            e.l3.forward(e.l2a, Gl / 4, Gl / 4, e.local_tok);
+            e.pose_tok += e.local_tok;
         }
         e.count_ids.assign(batch.count.begin(), batch.count.end());
         e.count_emb.forward(e.count_ids.data(), B, e.count_tok);
@@ -1981,7 +1984,7 @@ private:
         LayerNorm ln;
         std::vector<int> img_ids, count_ids;
         std::vector<float> kv_mask;
-        Mat g1o, g1a, g2o, g2a, img, tmp, p1, p1a, pose_tok, count_tok, kv, att, pre_ln, l1o, l1a, l2o, l2a;
+        Mat g1o, g1a, g2o, g2a, img, tmp, local_tok, p1, p1a, pose_tok, count_tok, kv, att, pre_ln, l1o, l1a, l2o, l2a;
         Mat d_l1o, d_l1a, d_l2o, d_l2a, d_local;
         Mat d_pre, d_pose, d_kv, d_img, d_g2a, d_g2o, d_g1a, d_g1o, d_grid, d_p1a, d_p1, d_posein, d_count;
     } enc_;
@@ -2009,8 +2012,8 @@ private:
         std::vector<MaxPool1d> pool;
         std::vector<Upsample1d> upsample;
         Conv1d decoder;
-        std::vector<Mat> skip, pooled, cat, up_out;
-        Mat mid_out, up_buf;
+        std::vector<Mat> skip, pooled, cat, up_out, up_buf;
+        Mat mid_out;
         Mat d_cur, d_cat, d_up, d_prev, d_pool, d_in;
         std::vector<Mat> d_skip;
     } net_;
@@ -2069,6 +2072,7 @@ private:
         u.pooled.resize(L);
         u.cat.resize(L);
         u.up_out.resize(L);
+        u.up_buf.resize(L);
         u.d_skip.resize(L);
     }
 
@@ -2182,10 +2186,10 @@ private:
         }
         u.mid.forward(u.pooled[L - 1], H >> L, cond_, colmask_[L].data(), u.mid_out);
         for (int l = L - 1; l >= 0; --l) {
-            u.upsample[l].forward(up_input(l), u.up_buf);  // nearest x2, then the skip below it
-            const long cu = u.up_buf.rows(), cs = u.skip[l].rows();
-            u.cat[l].resize(cu + cs, u.up_buf.cols());
-            u.cat[l].topRows(cu) = u.up_buf;
+            u.upsample[l].forward(up_input(l), u.up_buf[l]);  // nearest x2, then the skip below it
+            const long cu = u.up_buf[l].rows(), cs = u.skip[l].rows();
+            u.cat[l].resize(cu + cs, u.up_buf[l].cols());
+            u.cat[l].topRows(cu) = u.up_buf[l];
             u.cat[l].bottomRows(cs) = u.skip[l];
             u.up[l].forward(u.cat[l], H >> l, cond_, colmask_[l].data(), u.up_out[l]);
         }
@@ -2302,8 +2306,12 @@ struct SamplerConfig {
     int sample_steps = 10;       // S, DDIM steps (eta = 0), in [1, K]
     float clip = 1.5f;           // x0_hat clipped to [-clip, clip] (normalised displacements; Diffuser's clip_denoised)
     bool goal_inpaint = true;    // pin the window's last waypoint to the goal when it is within reach
-    float goal_reach = 0.55f;    // "within reach": distance to goal in world units at most this
+    float goal_reach = 0.55f;    // "within reach": distance to goal in world units at most this (see default_goal_reach)
 };
+
+// About the distance a window covers at the expert's cruising pace (0.55 units for 15 steps):
+// goals nearer than this get the window's end pinned to them (training and sampling agree).
+inline float default_goal_reach(const ModelConfig& c) { return (float)(0.55 * (c.horizon - 1) * c.waypoint_stride / 15.0); }
 
 // Where the sampler pins the window of agent a (normalised displacement units): t = 0 always
 // (zero displacement); t = H-1 to the goal when `goal_inpaint` and the goal is within reach.
@@ -2373,12 +2381,14 @@ public:
         : model_(std::move(model)), schedule_(model_.config.diffusion_steps), rng_(seed) {
         model_.set_training(false);
         sampler.sample_steps = model_.config.sample_steps;
+        sampler.goal_reach = default_goal_reach(model_.config);
     }
     const ModelConfig& config() const { return model_.config; }
     MadbpModel& model() { return model_; }
     void reseed(uint64_t seed) { rng_.reseed(seed); }
 
-    // A window for all present agents of `world`: waypoints for steps t+1 .. t+H-1.
+    // A window for all present agents of `world`: waypoints for steps t+1 .. t+(H-1)*stride
+    // (with a waypoint stride > 1, the steps between two sampled waypoints are interpolated).
     Plan plan(const World& world) {
         Plan p;
         plan_into(world, p);
@@ -2398,10 +2408,8 @@ public:
         update_grid(world.map());
         for (int i = 0; i < n; ++i) {
             const Agent& a = world.agents()[i];
-            require_finite(a.pos.x, "agent " + std::to_string(a.id) + " position x");
-            require_finite(a.pos.y, "agent " + std::to_string(a.id) + " position y");
-            require_finite(a.goal.x, "agent " + std::to_string(a.id) + " goal x");
-            require_finite(a.goal.y, "agent " + std::to_string(a.id) + " goal y");
+            if (!std::isfinite(a.pos.x + a.pos.y + a.goal.x + a.goal.y))  // the message only on failure: no allocation
+                throw std::invalid_argument("planner: agent " + std::to_string(a.id) + " has a non-finite position or goal");
             batch_.agent_mask[i] = 1;
             batch_.slot[i] = i;
             batch_.pose.col(i) << (float)(a.pos.x / c.position_scale), (float)(a.pos.y / c.position_scale),
@@ -2412,12 +2420,13 @@ public:
         sample_windows(model_, schedule_, batch_, sampler, rng_, x_, eps_, steps_);
         for (int i = 0; i < n; ++i) {
             out.ids[i] = world.agents()[i].id;
-            out.waypoints[i].resize(H - 1);
+            const int stride = c.waypoint_stride;
+            out.waypoints[i].resize((size_t)(H - 1) * stride);
             const Vec2 p0 = world.agents()[i].pos;
-            for (int t = 1; t < H; ++t) {
-                auto w = x_.col((long)i * H + t);
-                out.waypoints[i][t - 1] = p0 + Vec2{w(0) * (double)c.window_scale, w(1) * (double)c.window_scale};
-            }
+            auto at = [&](int t) { return p0 + Vec2{x_(0, (long)i * H + t) * (double)c.window_scale, x_(1, (long)i * H + t) * (double)c.window_scale}; };
+            for (int t = 1; t < H; ++t)
+                for (int s = 1; s <= stride; ++s)  // linear between sampled waypoints t-1 and t
+                    out.waypoints[i][(size_t)(t - 1) * stride + s - 1] = at(t - 1) + (at(t) - at(t - 1)) * ((double)s / stride);
         }
         out.plan_ms = std::chrono::duration<double, std::milli>(std::chrono::steady_clock::now() - t0).count();
     }

@@ -390,7 +390,7 @@ struct TrainConfig {
     float jerk_weight = 1.0f;     // lambda_jerk in L_temporal
     int stride = 1;               // window start stride in steps
     bool augment = true;          // random x / y mirror of whole scenes
-    float goal_reach = 0.55f;     // as SamplerConfig::goal_reach: the end is pinned when the goal is this near
+    float goal_reach = -1;        // as SamplerConfig::goal_reach; < 0: default_goal_reach(model config)
     float val_fraction = 0.05f;   // episodes held out for the validation loss
     int val_batches = 4;
     long checkpoint_every = 1000;
@@ -445,7 +445,8 @@ inline void make_train_batch(const DemoSet& demos, const std::vector<WindowRef>&
     }
     if (n_slots > mc.n_max) throw std::invalid_argument("train: windows with " + std::to_string(n_slots) + " agents exceed n_max");
     const int B = tc.batch, n = n_slots, H = mc.horizon, A = B * n, G = mc.grid;
-    const float s = mc.position_scale, ws = mc.window_scale, reach = tc.goal_reach;
+    const float s = mc.position_scale, ws = mc.window_scale, reach = tc.goal_reach >= 0 ? tc.goal_reach : default_goal_reach(mc);
+    const int stride = mc.waypoint_stride;
     tb.scene.resize(B, n, mc);
     tb.x0.setZero(2, (long)H * A);
     tb.horizon_goal.setZero(2, A);
@@ -475,10 +476,10 @@ inline void make_train_batch(const DemoSet& demos, const std::vector<WindowRef>&
             tb.origin.col(a) << (float)start.x, (float)start.y;
             fill_local_crop(tb.scene, a, tb.maps[b], start, mc);
             for (int t = 0; t < H; ++t) {
-                const Vec2 p = mir(d.position(ref.t + t, src)) - start;
+                const Vec2 p = mir(d.position(ref.t + t * stride, src)) - start;
                 tb.x0.col((long)a * H + t) << (float)(p.x / ws), (float)(p.y / ws);
             }
-            const Vec2 hg = mir(d.position(ref.t + H, src)) - start;
+            const Vec2 hg = mir(d.position(ref.t + H * stride, src)) - start;
             tb.horizon_goal.col(a) << (float)(hg.x / ws), (float)(hg.y / ws);
             tb.pinned[(size_t)a * H] = 1;
             // As the sampler: the end is pinned when the goal is within reach (to the

@@ -42,6 +42,8 @@ struct Method {
 #include "methods_nn.hpp"
 #define MADBP_HAVE_NN_METHODS 1
 #endif
+#include "alloc_counter.hpp"  // heap-allocation counters for bench --plan (this program's only copy)
+#include "bench_plan.hpp"
 #if __has_include("bench_nn.hpp")
 #include "bench_nn.hpp"
 #define MADBP_HAVE_BENCH_NN 1
@@ -291,23 +293,25 @@ int cmd_render(Args& a) {
 int cmd_demo(Args& a) {
     if (a.flag("--help")) {
         std::printf(
-            "madbp demo - a planning episode on the barrier map with 4 robots, drawn as SVG\n"
-            "  --seed S     episode seed (default 0)\n"
-            "  --out FILE   output (default demo.svg); an animated copy goes to FILE with -anim\n"
-            "  --json       print the result as JSON\n"
-            "Until the diffusion planner is built in, the demo runs the guided expert.\n");
+            "madbp demo - the shipped MA-DBP model plans for 4 robots on a barrier map; writes SVG\n"
+            "  --seed S       episode seed (default 0)\n"
+            "  --model FILE   model (default models/madbp-default.safetensors)\n"
+            "  --method M     another method instead, e.g. expert or line\n"
+            "  --out FILE     output (default demo.svg); an animated copy goes to FILE with -anim\n"
+            "  --json         print the result as JSON\n");
         return 0;
     }
     uint64_t seed = (uint64_t)a.integer("--seed", 0, 0);
     std::string out = a.str("--out", "demo.svg");
+    std::string method = a.str("--method", "madbp");
     bool json = a.flag("--json");
     auto all = methods();
     MethodSetup setup;
     setup.map = "barrier";
     setup.agents = 4;
     std::string anim = out.size() > 4 && out.substr(out.size() - 4) == ".svg" ? out.substr(0, out.size() - 4) + "-anim.svg" : out + "-anim.svg";
-    int rc = render_episode(find_method(all, "expert"), a, setup, nullptr, seed, out, false, json);
-    render_episode(find_method(all, "expert"), a, setup, nullptr, seed, anim, true, json);
+    int rc = render_episode(find_method(all, method), a, setup, nullptr, seed, out, false, json);
+    render_episode(find_method(all, method), a, setup, nullptr, seed, anim, true, json);
     if (!json) std::printf("open %s (picture) or %s (animation) in a browser\n", out.c_str(), anim.c_str());
     return rc;
 }
@@ -322,9 +326,13 @@ int cmd_bench(Args& a) {
             "  --threads LIST thread counts, e.g. 1,2 (default 1,2)\n"
             "  --seed S       seed of the worlds and actions (default 0)\n"
             "  --nn           benchmark the neural-network kernels instead (when built in)\n"
+            "  --plan         benchmark the diffusion planner instead: ms per plan, GFLOP/s against\n"
+            "                 Eigen's GEMM, allocations per plan; with --agents LIST (default\n"
+            "                 1,2,4,8,16,32), --plans N, --sample-steps S, --model FILE\n"
             "  --json         one JSON object per thread count\n");
         return 0;
     }
+    if (a.flag("--plan")) return bench_plan(a);
     if (a.flag("--nn")) {
 #ifdef MADBP_HAVE_BENCH_NN
         return bench_nn(a);

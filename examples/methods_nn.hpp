@@ -27,6 +27,8 @@ inline PlannerOptions read_planner_options(Args& a) {
 // Loads the model once; every episode gets its own planner on a copy (planners keep
 // workspaces, so episodes running in parallel must not share one).
 inline MethodSpec madbp_method(const PlannerOptions& o, const MethodSetup& s) {
+    // One thread per plan (SPEC 9 measures one core); eval --threads runs episodes in parallel.
+    madbp::set_num_threads(1);
     auto shared = std::make_shared<madbp::MadbpModel>(madbp::load_model(o.model_path));
     madbp::SafeTensors st = madbp::load_safetensors(o.model_path);
     int n_train = -1;
@@ -123,7 +125,7 @@ inline int cmd_train(Args& a) {
             "  --weights a,b,c,d  loss weights noise,boundary,temporal,collision (default .85,.025,.025,.1)\n"
             "  --horizon H --dim D --heads K --channels C1,C2 --kernel K --n-max N --grid G\n"
             "  --processor AAP|LE --window MW|CT --prediction x0|eps --local-grid G (0: off)\n"
-            "  --window-scale W   model configuration (SPEC 5; defaults in README)\n"
+            "  --window-scale W --waypoint-stride K   model configuration (SPEC 5; defaults in README)\n"
             "  --checkpoint-every N (default 1000)   --seed S (default 0)\n"
             "  --threads T        data-parallel replicas (default 2); results depend on T, not on the machine\n"
             "  --json             print the final losses as JSON\n");
@@ -164,6 +166,7 @@ inline int cmd_train(Args& a) {
         for (long c : a.integers("--channels", ch, 1, 1024)) mc.channels.push_back((int)c);
     }
     mc.local_grid = (int)a.integer("--local-grid", mc.local_grid, 0, 256);
+    mc.waypoint_stride = (int)a.integer("--waypoint-stride", mc.waypoint_stride, 1, 16);
     mc.window_scale = (float)a.real("--window-scale", mc.window_scale, 1e-3, 100);
     std::string pred = a.str("--prediction", "x0");
     if (pred != "x0" && pred != "eps") throw std::invalid_argument("--prediction: expected x0 or eps, got '" + pred + "'");

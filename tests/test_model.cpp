@@ -301,3 +301,22 @@ TEST_CASE("checkpoint: model round trip; a mismatching config is a clear error")
     CHECK_THROWS_WITH_AS(load_model(path), doctest::Contains("channels"), std::runtime_error);
     std::remove(path.c_str());
 }
+
+#include "alloc_counter_api.hpp"
+
+TEST_CASE("planner: a steady-state plan allocates nothing") {
+    ModelConfig c;  // the default configuration
+    set_num_threads(1);  // Eigen's own threaded GEMM allocates per call
+    DiffusionPlanner planner(MadbpModel(c, 1), 3);
+    World w = make_random_world("barrier", 6, 4);
+    Plan plan;
+    for (int i = 0; i < 3; ++i) planner.plan_into(w, plan);  // warm-up: workspaces take their sizes
+    g_allocs = 0;
+    g_count_allocs = true;
+    for (int i = 0; i < 3; ++i) planner.plan_into(w, plan);
+    g_count_allocs = false;
+#if MADBP_TEST_COUNT_ALLOCS
+    CHECK(g_allocs.load() == 0);
+#endif
+    CHECK(plan.ids.size() == 6);
+}

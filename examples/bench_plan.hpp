@@ -1,0 +1,109 @@
+// bench_plan.hpp - `madbp bench --plan`: wall time per window plan against team size, the
+// sampler's arithmetic rate as a share of the same run's Eigen matrix-product rate, and heap
+// allocations per plan (SPEC 9 speed targets). Included by madbp.cpp, which also includes
+// alloc_counter.hpp (the counters g_count_allocs / g_allocs).
+#pragma once
+#include <chrono>
+
+#include "alloc_counter_api.hpp"
+#include "madbp.hpp"
+
+namespace madbp_cli {
+
+// Multiply-adds x 2 of one plan: the context encoder once, then S denoiser passes. Counts the
+// products (Linear, Conv1d/2d as GEMMs, attention scores and sums), which are nearly all the work.
+inline double plan_flops(const madbp::ModelConfig& c, int n, int S) {
+    const double A = n, H = c.horizon, D = c.dim, k = c.kernel;
+    double denoise = 2 * 4 * D * H * A;  // in_proj
+    if (c.processor == madbp::Processor::AAP) {
+        denoise += 4 * 2 * D * D * H * A + 2 * 2 * H * H * D * A;          // time attention
+        denoise += 4 * 2 * D * D * H * A + 2 * 2 * n * n * D * H;          // agent attention
+        denoise += 2 * 2 * D * 2 * D * H * A;                              // MLP
+    }
+    denoise += 2 * D * 2 * D + 2 * 2 * D * D;  // step embedding (one scene)
+    const int L = c.levels();
+    double cin = D;
+    for (int l = 0; l < L; ++l) {  // down blocks: two convs and a FiLM projection each
+        const double T = H / (1 << l), co = c.channels[l];
+        denoise += 2 * (cin * co + co * co) * k * T * A + 2 * D * 2 * co * A;
+        cin = co;
+    }
+    const double TL = H / (1 << L);
+    denoise += 2 * 2 * cin * cin * k * TL * A + 2 * D * 2 * cin * A;  // middle block
+    for (int l = L - 1; l >= 0; --l) {  // up blocks: concatenated skip
+        const double T = H / (1 << l), co = c.channels[l];
+        denoise += 2 * ((cin + co) * co + co * co) * k * T * A + 2 * D * 2 * co * A;
+        cin = co;
+    }
+    denoise += 2 * cin * 2 * H * A;  // decoder
+    const double G = c.grid, P = c.image_tokens(), Gl = c.local_grid;
+    double context = 2 * 9 * (1 * 16 * (G / 2) * (G / 2) + 16 * 32 * (G / 4) * (G / 4) + 32 * D * (G / 8) * (G / 8));
+    if (Gl > 0) context += 2 * A * (9 * (8 * (Gl / 2) * (Gl / 2) + 8 * 16 * (Gl / 4) * (Gl / 4)) + 16 * D * (Gl / 4) * (Gl / 4));
+    context += 2 * A * (4 * D + D * D) + 2 * (4 * D * D * (A + P + A + 1) + 2 * A * (P + A + 1) * D);
+    return context + S * denoise;
+}
+
+// GFLOP/s of a single-threaded Eigen product of the U-Net's typical shape, timed for ~0.3 s.
+inline double eigen_gemm_rate(int m, int kdim, int n) {
+    madbp::Mat a = madbp::Mat::Random(m, kdim), b = madbp::Mat::Random(kdim, n), c(m, n);
+    long reps = 0;
+    auto t0 = std::chrono::steady_clock::now();
+    double secs = 0;
+    while (secs < 0.3) {
+        for (int i = 0; i < 50; ++i) c.noalias() = a * b;
+        reps += 50;
+        a(0, 0) += c(0, 0) * 1e-12f;  // keep the products live
+        secs = std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count();
+    }
+    return 2.0 * m * kdim * n * reps / secs / 1e9;
+}
+
+inline int bench_plan(Args& a) {
+    std::string model_path = a.str("--model", "");
+    std::vector<long> teams = a.integers("--agents", "1,2,4,8,16,32", 1, 1024);
+    int plans = (int)a.integer("--plans", 50, 1, 1000000);
+    int steps = (int)a.integer("--sample-steps", 0, 0, 1000);
+    uint64_t seed = (uint64_t)a.integer("--seed", 0, 0);
+    bool json = a.flag("--json");
+    a.finish();
+    madbp::set_num_threads(1);  // SPEC 9: one core
+    madbp::ModelConfig config;
+    if (!model_path.empty()) config = madbp::load_model(model_path).config;
+    const int S = steps > 0 ? steps : config.sample_steps;
+    // The GEMM of the first down block's convolution for 8 agents: (C0, D*k) x (D*k, H*8).
+    const double gemm = eigen_gemm_rate(config.channels[0], config.dim * config.kernel, config.horizon * 8);
+    if (!json)
+        std::printf("plan bench: %s, S = %d, one thread; Eigen GEMM %dx%d * %dx%d: %.1f GFLOP/s\n"
+                    "%4s %10s %10s %8s %12s\n",
+                    model_path.empty() ? "default config (random weights: time does not depend on them)" : model_path.c_str(), S,
+                    config.channels[0], config.dim * config.kernel, config.dim * config.kernel, config.horizon * 8, gemm, "n",
+                    "ms/plan", "GFLOP/s", "of GEMM", "allocs/plan");
+    for (long n : teams) {
+        if (n > config.n_max) throw std::invalid_argument("--agents: " + std::to_string(n) + " exceeds the model's n_max " + std::to_string(config.n_max));
+        madbp::MadbpModel model = model_path.empty() ? madbp::MadbpModel(config, seed) : madbp::load_model(model_path);
+        madbp::DiffusionPlanner planner(std::move(model), seed);
+        planner.sampler.sample_steps = S;
+        // Larger teams need a larger world to spawn in (starts and goals 0.25 apart).
+        madbp::World world = madbp::make_random_world("empty", (int)n, seed, n > 16 ? 2.4 : 1.2);
+        madbp::Plan plan;
+        for (int i = 0; i < 3; ++i) planner.plan_into(world, plan);  // warm-up: workspaces take their sizes
+        g_allocs = 0;
+        g_count_allocs = true;
+        auto t0 = std::chrono::steady_clock::now();
+        for (int i = 0; i < plans; ++i) planner.plan_into(world, plan);
+        const double secs = std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count();
+        g_count_allocs = false;
+        const double ms = 1000 * secs / plans, rate = plan_flops(config, (int)n, S) / (secs / plans) / 1e9;
+        const double allocs = MADBP_TEST_COUNT_ALLOCS ? (double)g_allocs.load() / plans : std::nan("");
+        if (json)
+            std::printf("%s\n", Json().add("bench", "plan").add("agents", n).add("sample_steps", S).add("ms_per_plan", ms)
+                                    .add("gflops", rate).add("gemm_gflops", gemm).add("share_of_gemm", rate / gemm)
+                                    .add("allocs_per_plan", allocs).line().c_str());
+        else
+            std::printf("%4ld %10.3f %10.1f %7.0f%% %12.1f\n", n, ms, rate, 100 * rate / gemm, allocs);
+        std::fflush(stdout);
+    }
+    return 0;
+}
+
+}  // namespace madbp_cli
