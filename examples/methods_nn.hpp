@@ -15,12 +15,14 @@ struct PlannerOptions {
     std::string model_path;
     int sample_steps = 0;      // 0: the model's default
     bool goal_inpaint = true;
+    double goal_reach = -1;    // < 0: the model's default_goal_reach
 };
 inline PlannerOptions read_planner_options(Args& a) {
     PlannerOptions o;
     o.model_path = a.str("--model", kDefaultModel);
     o.sample_steps = (int)a.integer("--sample-steps", 0, 0, 1000);
     o.goal_inpaint = !a.flag("--no-goal-inpaint");
+    o.goal_reach = a.real("--goal-reach", -1, -1, 100);
     return o;
 }
 
@@ -45,6 +47,7 @@ inline MethodSpec madbp_method(const PlannerOptions& o, const MethodSetup& s) {
         auto planner = std::make_shared<madbp::DiffusionPlanner>(shared->clone(), seed);
         if (o.sample_steps > 0) planner->sampler.sample_steps = o.sample_steps;
         planner->sampler.goal_inpaint = o.goal_inpaint;
+        if (o.goal_reach >= 0) planner->sampler.goal_reach = (float)o.goal_reach;
         return std::make_unique<madbp::PlanFollower>([planner](const madbp::World& w) { return planner->plan(w); }, fc);
     };
     return spec;
@@ -54,7 +57,7 @@ inline void register_nn_methods(std::vector<Method>& m) {
     m.push_back({"madbp",
                  "MA-DBP diffusion planner + tracker (+ safety filter) (SPEC 5-8); --model FILE\n"
                  "                    (default models/madbp-default.safetensors), --sample-steps S,\n"
-                 "                    --no-goal-inpaint",
+                 "                    --no-goal-inpaint, --goal-reach R (world units; default 0.55)",
                  [](Args& a, const MethodSetup& s) { return madbp_method(read_planner_options(a), s); }});
 }
 

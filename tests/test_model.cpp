@@ -320,3 +320,18 @@ TEST_CASE("planner: a steady-state plan allocates nothing") {
 #endif
     CHECK(plan.ids.size() == 6);
 }
+
+TEST_CASE("planner: with a waypoint stride the steps between sampled waypoints are interpolated") {
+    ModelConfig c = tiny_config();
+    c.waypoint_stride = 2;
+    DiffusionPlanner planner(MadbpModel(c, 2), 1);
+    World w = make_random_world("empty", 2, 9);
+    Plan p = planner.plan(w);
+    REQUIRE(p.waypoints[0].size() == (size_t)(c.horizon - 1) * 2);
+    const Vec2 start = w.agents()[0].pos;
+    // Step 1 lies halfway between the start and sampled waypoint 1 (step 2), and so on.
+    CHECK(norm(p.waypoints[0][0] - (start + p.waypoints[0][1]) * 0.5) < 1e-9);
+    CHECK(norm(p.waypoints[0][2] - (p.waypoints[0][1] + p.waypoints[0][3]) * 0.5) < 1e-9);
+    // Reach scales with the window's span: 0.55 units per 15 steps; 7 waypoints x 2 steps here.
+    CHECK(default_goal_reach(c) == doctest::Approx(0.55 * 14 / 15).epsilon(1e-6));
+}
