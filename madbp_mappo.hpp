@@ -343,10 +343,13 @@ inline PpoTerms ppo_loss(MappoNet& net, const PpoBatch& b, const PpoCoefficients
 // Rewards per agent and step (VMAS navigation's terms; our constants):
 //   shaping * (distance to goal before the step - after it)     VMAS pos_shaping_factor 1
 //   + success_bonus to every agent on the step the team succeeds (all at goal together)
-//   + collision per contact the agent is in (agent-agent pair or agent-static) VMAS -1
+//   + collision per contact the agent is in (agent-agent pair or agent-static)
 //   + time per step (a small push toward finishing early)
+// VMAS's collision penalty is -1, but with obstacles that is a whole episode's shaping for one
+// step of contact and the policy grew timid: obstacles n = 2 reached .52 with (-1, bonus 1),
+// .88 with (-0.1, 1) and .94 with (-0.1, 5) (200 iterations, 100 evaluation episodes; README).
 struct MappoRewards {
-    float shaping = 1.0f, success_bonus = 1.0f, collision = -1.0f, time = -0.01f;
+    float shaping = 1.0f, success_bonus = 5.0f, collision = -0.1f, time = -0.01f;
 };
 
 struct MappoConfig {
@@ -368,7 +371,7 @@ struct MappoConfig {
     long checkpoint_every = 10;    // iterations
     int threads = 1;               // OpenMP threads (worlds, observations, products); results do not depend on it
     bool quiet = false;            // no progress line
-    // Called after every iteration; false stops there (time budgets, tests' simulated kills).
+    // Called after every iteration; false stops there, after a checkpoint (time budgets).
     std::function<bool(long iteration)> keep_going;
 
     void validate() const {
@@ -383,7 +386,7 @@ struct MappoConfig {
     }
     // The hyper-parameters as checkpoint metadata (the record of how a policy was trained).
     std::map<std::string, std::string> metadata() const {
-        auto f = [](double v) { char b[32]; std::snprintf(b, sizeof b, "%.9g", v); return std::string(b); };
+        auto f = [](double v) { char b[32]; std::snprintf(b, sizeof b, "%.6g", v); return std::string(b); };
         return {{"mappo.map", map}, {"mappo.half_size", f(half_size)}, {"mappo.worlds", std::to_string(worlds)},
                 {"mappo.epochs", std::to_string(epochs)}, {"mappo.minibatches", std::to_string(minibatches)},
                 {"mappo.lr", f(lr)}, {"mappo.gamma", f(gamma)}, {"mappo.lambda", f(lambda)}, {"mappo.clip", f(ppo.clip)},
@@ -699,11 +702,12 @@ inline MappoReport train_mappo(const MappoConfig& c, MappoNet* result = nullptr)
         const double u = std::max(1, updates);
         row.loss = {sum.policy / u, sum.value / u, sum.entropy / u, sum.approx_kl / u, sum.clip_fraction / u};
         rep.curve.push_back(row);
-        if (iteration % c.checkpoint_every == 0 || iteration == c.iterations) save_state();
+        const bool stop = c.keep_going && !c.keep_going(iteration);
+        if (iteration % c.checkpoint_every == 0 || iteration == c.iterations || stop) save_state();
         char extra[96];
         std::snprintf(extra, sizeof extra, "success %.2f  return %.3f", row.success, row.episode_return);
         progress.tick(1, extra);
-        if (c.keep_going && !c.keep_going(iteration)) break;
+        if (stop) break;
     }
     rep.iterations = iteration;
     rep.env_steps = iteration * (long)T * W;

@@ -249,7 +249,7 @@ TEST_CASE("mappo: checkpoints round-trip; resume is exact; runs are deterministi
         CHECK((u1[0] == u2[0] && u1[1] == u2[1]));
         w1.step(u1), w2.step(u2);
     }
-    // Killed after 2 iterations, then resumed to 4: the same parameters as straight through.
+    // Stopped after 2 iterations, then resumed to 4: the same parameters as straight through.
     const std::string out2 = temp_path("resume.safetensors");
     remove_outputs(out2);
     MappoConfig k = c;

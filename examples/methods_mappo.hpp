@@ -1,0 +1,107 @@
+// methods_mappo.hpp - MAPPO in the `madbp` tool: `eval/render --method mappo` and the
+// `madbp mappo` training subcommand (SPEC 3.3, 10). Included after madbp.cpp's Method types.
+#pragma once
+#include <chrono>
+#include <memory>
+#include <sys/stat.h>
+
+#include "madbp_mappo.hpp"
+
+namespace madbp_cli {
+
+// Where `madbp mappo` writes, and `eval --method mappo` looks, by default.
+inline std::string default_mappo_path(const std::string& map, int agents) {
+    return "models/mappo/" + map + "-" + std::to_string(agents) + ".safetensors";
+}
+
+// The policy for one eval cell: --model FILE, or the shipped policy of the cell's map and n.
+// MAPPO is trained per team size, so a policy of another n is refused before any episode.
+inline MethodSpec mappo_method(Args& a, const MethodSetup& s) {
+    const std::string path = a.str("--model", "");
+    if (path.empty() && s.map == "scene") throw std::invalid_argument("--model: needed with --scene (MAPPO policies are per map and n)");
+    const std::string file = path.empty() ? default_mappo_path(s.map, s.agents) : path;
+    auto shared = std::make_shared<madbp::MappoNet>(madbp::load_mappo(file));
+    if (shared->config.agents != s.agents)
+        throw std::invalid_argument("--model: " + file + " was trained for " + std::to_string(shared->config.agents) +
+                                    " agents, the cell has " + std::to_string(s.agents) + " (MAPPO is trained per team size)");
+    MethodSpec spec;
+    spec.n_train = shared->config.agents;
+    spec.factory = [shared](const madbp::World&, uint64_t) { return std::unique_ptr<madbp::Policy>(new madbp::MappoPolicy(shared->clone())); };
+    return spec;
+}
+
+inline void register_mappo_methods(std::vector<Method>& m) {
+    m.push_back({"mappo",
+                 "MAPPO policy (SPEC 3.3), mean action, no safety filter (raw, as in the paper);\n"
+                 "                    --model FILE (default models/mappo/<map>-<n>.safetensors)",
+                 mappo_method});
+}
+
+// ---------------------------------------------------------------------------------------------
+inline int cmd_mappo(Args& a) {
+    if (a.flag("--help")) {
+        std::printf(
+            "madbp mappo - train a MAPPO policy for one map and team size (SPEC 3.3)\n"
+            "  --map NAME          empty, obstacles, barrier (default empty)\n"
+            "  --agents N          team size the policy is built for (default 2)\n"
+            "  --out FILE          policy file (default models/mappo/<map>-<n>.safetensors);\n"
+            "                      resumable state in FILE.train, curve in FILE.csv and FILE.svg\n"
+            "  --resume            continue from FILE.train\n"
+            "  --iterations I      rollout + update rounds (default 300); each plays 100 steps on\n"
+            "                      every world\n"
+            "  --time-budget S     stop after S seconds of training (default: none)\n"
+            "  --worlds W          worlds stepping together (default 32)\n"
+            "  --hidden H          width of the 2 hidden Tanh layers of actor and critic (default 64)\n"
+            "  --epochs E --minibatches M   PPO passes per rollout and minibatches per pass (4, 4)\n"
+            "  --lr X --gamma G --lambda L --clip C --ent-coef E --vf-coef V --max-grad-norm N\n"
+            "                      (defaults 3e-4, 0.99, 0.9, 0.2, 1e-3, 0.5, 1.0)\n"
+            "  --checkpoint-every K  iterations between checkpoints (default 10)\n"
+            "  --threads T         threads (default 2); the result does not depend on it\n"
+            "  --seed S            (default 0)\n"
+            "  --json              print the summary as JSON\n");
+        return 0;
+    }
+    madbp::MappoConfig c;
+    c.map = a.str("--map", "empty");
+    c.agents = (int)a.integer("--agents", 2, 1, 64);
+    c.out = a.str("--out", default_mappo_path(c.map, c.agents));
+    c.resume = a.flag("--resume");
+    c.iterations = a.integer("--iterations", c.iterations, 1, 100000000);
+    const double budget = a.real("--time-budget", 0, 0, 1e9);
+    c.worlds = (int)a.integer("--worlds", c.worlds, 1, 100000);
+    c.hidden = (int)a.integer("--hidden", c.hidden, 1, 4096);
+    c.epochs = (int)a.integer("--epochs", c.epochs, 1, 1000);
+    c.minibatches = (int)a.integer("--minibatches", c.minibatches, 1, 100000);
+    c.lr = (float)a.real("--lr", c.lr, 1e-8, 1);
+    c.gamma = (float)a.real("--gamma", c.gamma, 0, 1);
+    c.lambda = (float)a.real("--lambda", c.lambda, 0, 1);
+    c.ppo.clip = (float)a.real("--clip", c.ppo.clip, 1e-4, 10);
+    c.ppo.ent_coef = (float)a.real("--ent-coef", c.ppo.ent_coef, 0, 10);
+    c.ppo.vf_coef = (float)a.real("--vf-coef", c.ppo.vf_coef, 0, 100);
+    c.max_grad_norm = (float)a.real("--max-grad-norm", c.max_grad_norm, 1e-6, 1e6);
+    c.checkpoint_every = a.integer("--checkpoint-every", c.checkpoint_every, 1);
+    c.threads = (int)a.integer("--threads", 2, 1, 256);
+    c.seed = (uint64_t)a.integer("--seed", 0, 0);
+    const bool json = a.flag("--json");
+    a.finish();
+    c.validate();
+    if (budget > 0) {
+        // The budget counts this process's training time; train_mappo checkpoints where it stops.
+        const auto t0 = std::chrono::steady_clock::now();
+        c.keep_going = [t0, budget](long) { return std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count() < budget; };
+    }
+    const size_t slash = c.out.find_last_of('/');
+    if (slash != std::string::npos && slash > 0) ::mkdir(c.out.substr(0, slash).c_str(), 0755);  // e.g. models/mappo; exists: fine
+    madbp::MappoReport r = madbp::train_mappo(c);
+    const madbp::MappoCurveRow last = r.curve.empty() ? madbp::MappoCurveRow{} : r.curve.back();
+    if (json)
+        std::printf("%s\n", Json().add("out", c.out).add("map", c.map).add("agents", c.agents).add("iterations", r.iterations)
+                                .add("env_steps", r.env_steps).add("seconds", r.seconds).add("train_success", last.success)
+                                .add("train_return", last.episode_return).line().c_str());
+    else
+        std::printf("mappo %s n=%d: %ld iterations (%ld world steps) in %.1f s; last rollout success %.2f, return %.3f -> %s\n",
+                    c.map.c_str(), c.agents, r.iterations, r.env_steps, r.seconds, last.success, last.episode_return, c.out.c_str());
+    return 0;
+}
+
+}  // namespace madbp_cli
