@@ -1644,15 +1644,18 @@ struct ModelConfig {
         auto bad = [](const std::string& f, const std::string& why) { throw std::invalid_argument("model config " + f + ": " + why); };
         if (channels.empty() || channels.size() > 4) bad("channels", "needs 1 to 4 levels");
         for (int c : channels) if (c < 1 || c > 1024) bad("channels", "each width must be in [1, 1024]");
-        if (horizon < 2 || horizon % (1 << levels()) != 0) bad("horizon", std::to_string(horizon) + " must be >= 2 and a multiple of 2^levels");
-        if (dim < 4 || dim % 2 || heads < 1 || dim % heads) bad("dim/heads", "dim must be even, >= 4 and divisible by heads");
+        if (horizon < 2 || horizon > 4096 || horizon % (1 << levels()) != 0)
+            bad("horizon", std::to_string(horizon) + " must be in [2, 4096] and a multiple of 2^levels");
+        if (dim < 4 || dim > 4096 || dim % 2 || heads < 1 || heads > 64 || dim % heads)
+            bad("dim/heads", "dim must be even, in [4, 4096] and divisible by heads (1 to 64)");
         if (n_max < 1 || n_max > 1024) bad("n_max", "must be in [1, 1024]");
-        if (grid < 8 || grid % 8) bad("grid", "must be a positive multiple of 8");
+        if (grid < 8 || grid > 1024 || grid % 8) bad("grid", "must be a multiple of 8 in [8, 1024]");
         if (local_grid < 0 || local_grid % 4 || local_grid > 256) bad("local_grid", "must be 0 or a multiple of 4 up to 256");
         if (!(local_extent > 0) || !std::isfinite(local_extent)) bad("local_extent", "must be positive");
         if (kernel < 1 || kernel % 2 == 0) bad("kernel", "must be odd");
         if (waypoint_stride < 1 || waypoint_stride > 16) bad("waypoint_stride", "must be in [1, 16]");
-        if (diffusion_steps < 2 || sample_steps < 1 || sample_steps > diffusion_steps) bad("sample_steps", "must be in [1, diffusion_steps]");
+        if (diffusion_steps < 2 || diffusion_steps > 100000) bad("diffusion_steps", "must be in [2, 100000]");
+        if (sample_steps < 1 || sample_steps > diffusion_steps) bad("sample_steps", "must be in [1, diffusion_steps]");
         if (!(position_scale > 0) || !std::isfinite(position_scale)) bad("position_scale", "must be positive");
         if (!(window_scale > 0) || !std::isfinite(window_scale)) bad("window_scale", "must be positive");
     }
@@ -1715,15 +1718,16 @@ struct ModelConfig {
         const std::string& w = get("window");
         if (w != "MW" && w != "CT") throw std::runtime_error(source + ": metadata field 'window' must be MW or CT");
         c.window = w == "MW" ? WindowMode::MW : WindowMode::CT;
-        try {
-            c.position_scale = std::stof(get("position_scale"));
-            c.window_scale = std::stof(get("window_scale"));
-            c.local_extent = std::stof(get("local_extent"));
-        } catch (const std::runtime_error&) {
-            throw;
-        } catch (...) {
-            throw std::runtime_error(source + ": metadata fields 'position_scale' / 'window_scale' must be numbers");
-        }
+        auto real = [&](const std::string& k) {
+            const std::string& s = get(k);
+            char* end = nullptr;
+            const float v = std::strtof(s.c_str(), &end);
+            if (s.empty() || *end != '\0') throw std::runtime_error(source + ": metadata field '" + k + "' is not a number ('" + s + "')");
+            return v;
+        };
+        c.position_scale = real("position_scale");
+        c.window_scale = real("window_scale");
+        c.local_extent = real("local_extent");
         const std::string& pr = get("prediction");
         if (pr != "eps" && pr != "x0") throw std::runtime_error(source + ": metadata field 'prediction' must be eps or x0");
         c.prediction = pr == "eps" ? Prediction::Eps : Prediction::X0;
@@ -2404,7 +2408,10 @@ public:
         out.ids.resize(n);
         out.waypoints.resize(n);
         if (n == 0) { out.plan_ms = 0; return; }
-        if (batch_.B != 1 || batch_.n != n) batch_.resize(1, n, c);
+        if (batch_.B != 1 || batch_.n != n) {  // a team of another size: new buffers, grid redrawn
+            batch_.resize(1, n, c);
+            grid_valid_ = false;
+        }
         update_grid(world.map());
         for (int i = 0; i < n; ++i) {
             const Agent& a = world.agents()[i];

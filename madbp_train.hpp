@@ -646,6 +646,8 @@ inline TrainReport train(const DemoSet& demos, MadbpModel& model, const TrainCon
     const ModelConfig& mc = model.config;
     if (demos.episodes.empty()) throw std::invalid_argument("train: the dataset has no episodes");
     if (tc.batch < 1 || tc.steps < 1) throw std::invalid_argument("train: batch and steps must be >= 1");
+    if (tc.log_every < 1 || tc.checkpoint_every < 1 || tc.val_batches < 1)
+        throw std::invalid_argument("train: log_every, checkpoint_every and val_batches must be >= 1");
     if (tc.n_train_max > mc.n_max) throw std::invalid_argument("train: n_train_max exceeds the model's n_max");
     if (mc.window == WindowMode::CT)
         for (const Demonstration& d : demos.episodes)
@@ -664,6 +666,13 @@ inline TrainReport train(const DemoSet& demos, MadbpModel& model, const TrainCon
     adam.lr = tc.lr;
     Ema ema;
     ema.decay = tc.ema_decay;
+    // What makes two runs the same run (checked on --resume): seed, length, batch, replicas.
+    const std::map<std::string, std::string> run_identity = {{"train.seed", std::to_string(tc.seed)},
+        {"train.steps", std::to_string(tc.steps)}, {"train.batch", std::to_string(tc.batch)},
+        {"train.threads", std::to_string(std::max(1, std::min(tc.threads, tc.batch)))}};
+    // The curriculum starts at the smallest team the data has.
+    int smallest_team = 1 << 30;
+    for (const WindowRef& w : train_windows) smallest_team = std::min(smallest_team, demos.episodes[w.episode].agents);
     // Data parallelism: replica r trains on its share of the batch with its own random stream;
     // gradients (and BatchNorm running statistics) are averaged weighted by the shares.
     const int R = std::max(1, std::min(tc.threads, tc.batch));
@@ -680,6 +689,10 @@ inline TrainReport train(const DemoSet& demos, MadbpModel& model, const TrainCon
         read_param_tensors(st, *model.params);
         read_adam(st, model.params->size(), adam);
         read_ema(st, model.params->size(), ema);
+        for (auto& kv : run_identity)  // a resumed run must be the same run
+            if (!st.metadata.count(kv.first) || st.metadata.at(kv.first) != kv.second)
+                throw std::runtime_error(state_path + ": was written by a run with another " + kv.first + " (" +
+                                         (st.metadata.count(kv.first) ? st.metadata.at(kv.first) : std::string("none")) + ", this run: " + kv.second + ")");
         read_rng(st, "train.rng", rng);
         for (int r = 1; r < R; ++r)
             if (st.metadata.count("train.rng." + std::to_string(r))) read_rng(st, "train.rng." + std::to_string(r), rngs[r]);
@@ -731,6 +744,7 @@ inline TrainReport train(const DemoSet& demos, MadbpModel& model, const TrainCon
         append_adam(adam, tensors, md);
         append_ema(ema, tensors, md);
         append_rng(rng, "train.rng", md);
+        for (auto& kv : run_identity) md[kv.first] = kv.second;
         for (int r = 1; r < R; ++r) append_rng(rngs[r], "train.rng." + std::to_string(r), md);
         save_safetensors(state_path, tensors, md);
         std::string csv = "step,n_curr,train_total,train_noise,train_boundary,train_temporal,train_collision,val_total\n";
@@ -753,7 +767,7 @@ inline TrainReport train(const DemoSet& demos, MadbpModel& model, const TrainCon
     for (int r = 1; r < R; ++r) replica.push_back(&clones[r - 1]);
     for (int r = 0; r < R; ++r) share[r].batch = tc.batch / R + (r < tc.batch % R ? 1 : 0);
     while (step < tc.steps) {
-        const int n_curr = curriculum_agents(step, tc);
+        const int n_curr = std::max(smallest_team, curriculum_agents(step, tc));
         std::string error;
         // Sync before the parallel region: replica 0's BatchNorm writes its running statistics
         // (part of the parameter vector) during the forward pass.

@@ -335,3 +335,32 @@ TEST_CASE("planner: with a waypoint stride the steps between sampled waypoints a
     // Reach scales with the window's span: 0.55 units per 15 steps; 7 waypoints x 2 steps here.
     CHECK(default_goal_reach(c) == doctest::Approx(0.55 * 14 / 15).epsilon(1e-6));
 }
+
+TEST_CASE("planner: a team that changes size on the same map plans like a fresh planner") {
+    ModelConfig c = tiny_config();
+    World w = make_random_world("barrier", 3, 5);
+    DiffusionPlanner reused(MadbpModel(c, 4), 8);
+    reused.plan(w);
+    w.remove_agent(w.agents()[1].id);
+    reused.reseed(99);
+    Plan a = reused.plan(w);
+    DiffusionPlanner fresh(MadbpModel(c, 4), 99);
+    Plan b = fresh.plan(w);
+    REQUIRE(a.ids == b.ids);
+    for (size_t i = 0; i < a.ids.size(); ++i)
+        for (size_t k = 0; k < a.waypoints[i].size(); ++k) CHECK(norm(a.waypoints[i][k] - b.waypoints[i][k]) == 0.0);
+}
+
+TEST_CASE("checkpoint: oversized or malformed numbers in the metadata are clear errors") {
+    const ModelConfig c = tiny_config();
+    MadbpModel m(c, 9);
+    const std::string path = "build/test-model-meta.safetensors";
+    for (auto bad : std::vector<std::pair<std::string, std::string>>{
+             {"dim", "46342"}, {"grid", "536870912"}, {"position_scale", "1.2junk"}, {"diffusion_steps", "999999999"}}) {
+        auto md = c.to_metadata();
+        md[bad.first] = bad.second;
+        save_safetensors(path, param_tensors(*m.params), md);
+        CHECK_THROWS_WITH_AS(load_model(path), doctest::Contains(bad.first.c_str()), std::runtime_error);
+    }
+    std::remove(path.c_str());
+}

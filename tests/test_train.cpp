@@ -257,6 +257,11 @@ TEST_CASE("training: killed after a checkpoint, resumed, ends where an uninterru
     TrainReport rep = train(demos, resumed, tr);
     CHECK(rep.steps == 30);
     CHECK(resumed.params->value == straight.params->value);
+    // A resume with another seed is another run: refused.
+    TrainConfig other_seed = tr;
+    other_seed.seed = 4;
+    MadbpModel m4(tiny_config(), 1);
+    CHECK_THROWS_WITH_AS(train(demos, m4, other_seed), doctest::Contains("train.seed"), std::runtime_error);
     // A state file of another configuration is refused.
     ModelConfig other = tiny_config();
     other.dim = 8;
