@@ -338,7 +338,12 @@ TEST_CASE("planner: with a waypoint stride the steps between sampled waypoints a
 
 TEST_CASE("planner: a team that changes size on the same map plans like a fresh planner") {
     ModelConfig c = tiny_config();
-    World w = make_random_world("barrier", 3, 5);
+    Map map;
+    map.discs.push_back({Vec2{0.0, 0.0}, 0.5});  // large enough to show on the tiny 8x8 grid
+    World w(map);
+    w.add_agent({-0.9, -0.9}, {0.9, 0.9});
+    w.add_agent({0.9, -0.9}, {-0.9, 0.9});
+    w.add_agent({-0.9, 0.9}, {0.9, -0.9});
     DiffusionPlanner reused(MadbpModel(c, 4), 8);
     reused.plan(w);
     w.remove_agent(w.agents()[1].id);
@@ -347,8 +352,8 @@ TEST_CASE("planner: a team that changes size on the same map plans like a fresh 
     DiffusionPlanner fresh(MadbpModel(c, 4), 99);
     Plan b = fresh.plan(w);
     REQUIRE(a.ids == b.ids);
-    for (size_t i = 0; i < a.ids.size(); ++i)
-        for (size_t k = 0; k < a.waypoints[i].size(); ++k) CHECK(norm(a.waypoints[i][k] - b.waypoints[i][k]) == 0.0);
+    // The context encodes the map (random weights saturate the sampler's clip, so compare it).
+    CHECK((reused.model().context() - fresh.model().context()).cwiseAbs().maxCoeff() == 0.0f);
 }
 
 TEST_CASE("checkpoint: oversized or malformed numbers in the metadata are clear errors") {
