@@ -350,6 +350,7 @@ inline PpoTerms ppo_loss(MappoNet& net, const PpoBatch& b, const PpoCoefficients
 // .88 with (-0.1, 1) and .94 with (-0.1, 5) (200 iterations, 100 evaluation episodes; README).
 struct MappoRewards {
     float shaping = 1.0f, success_bonus = 5.0f, collision = -0.1f, time = -0.01f;
+    float at_goal = 0.0f;  // per step while within the goal tolerance
 };
 
 struct MappoConfig {
@@ -643,7 +644,8 @@ inline MappoReport train_mappo(const MappoConfig& c, MappoNet* result = nullptr)
                     const long s = col + (long)w * n + i;
                     const Agent& ag = world.agents()[i];
                     ro.reward[s] = c.rewards.shaping * (float)(dist_before[(long)w * n + i] - norm(ag.pos - ag.goal)) +
-                                   c.rewards.collision * contacts[i] + c.rewards.time + (success ? c.rewards.success_bonus : 0.0f);
+                                   c.rewards.collision * contacts[i] + c.rewards.time + (success ? c.rewards.success_bonus : 0.0f) +
+                                   (world.at_goal(ag) ? c.rewards.at_goal : 0.0f);
                     ro.terminal[s] = success;
                     if (!first_done[w]) first_return[w] += ro.reward[s] / n;
                 }

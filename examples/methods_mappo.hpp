@@ -37,6 +37,41 @@ inline void register_mappo_methods(std::vector<Method>& m) {
                  mappo_method});
 }
 
+// Per-step decision time (paper Fig. 3b) of MAPPO (the actor on every agent, untrained weights:
+// the time depends only on the architecture) and of CLF-QP, for each team size, in one run on
+// one thread: ms per act() on empty-map worlds stepped with the actions.
+inline int bench_decision(const std::vector<long>& counts, int hidden, int steps, uint64_t seed, bool json) {
+    madbp::set_num_threads(1);
+    if (!json) std::printf("%4s %12s %12s\n", "n", "mappo_ms", "clfqp_ms");
+    for (long n : counts) {
+        madbp::MappoNetConfig nc;
+        nc.agents = (int)n;
+        nc.hidden = hidden;
+        madbp::MappoPolicy mappo{madbp::MappoNet(nc, seed)};
+        madbp::ClfQp clfqp;
+        double ms[2];
+        madbp::Policy* policies[2] = {&mappo, &clfqp};
+        for (int k = 0; k < 2; ++k) {
+            madbp::WorldConfig wc;
+            wc.max_steps = 1 << 30;
+            madbp::World w = madbp::make_random_world("empty", (int)n, seed, 1.2, wc);
+            for (int s = 0; s < 10; ++s) w.step(policies[k]->act(w));  // warm-up
+            const auto t0 = std::chrono::steady_clock::now();
+            for (int s = 0; s < steps; ++s) {
+                const auto u = policies[k]->act(w);
+                if (s % 100 == 99) w = madbp::make_random_world("empty", (int)n, seed + s, 1.2, wc);
+                else w.step(u);
+            }
+            ms[k] = std::chrono::duration<double, std::milli>(std::chrono::steady_clock::now() - t0).count() / steps;
+        }
+        if (json)
+            std::printf("%s\n", Json().add("bench", "decision").add("n", n).add("mappo_ms", ms[0]).add("clfqp_ms", ms[1]).line().c_str());
+        else
+            std::printf("%4ld %12.4f %12.4f\n", n, ms[0], ms[1]);
+    }
+    return 0;
+}
+
 // ---------------------------------------------------------------------------------------------
 inline int cmd_mappo(Args& a) {
     if (a.flag("--help")) {
@@ -58,7 +93,10 @@ inline int cmd_mappo(Args& a) {
             "  --checkpoint-every K  iterations between checkpoints (default 10)\n"
             "  --threads T         threads (default 2); the result does not depend on it\n"
             "  --seed S            (default 0)\n"
-            "  --json              print the summary as JSON\n");
+            "  --json              print the summary as JSON\n"
+            "  --bench-decision LIST  instead of training: ms per step of MAPPO (the actor, width\n"
+            "                      --hidden) and CLF-QP for each team size, e.g. 1,2,4,8,16 (Fig. 3b)\n"
+            "  --bench-steps K     steps timed per size (default 5000)\n");
         return 0;
     }
     madbp::MappoConfig c;
@@ -83,6 +121,13 @@ inline int cmd_mappo(Args& a) {
     c.threads = (int)a.integer("--threads", 2, 1, 256);
     c.seed = (uint64_t)a.integer("--seed", 0, 0);
     const bool json = a.flag("--json");
+    const std::string bench = a.str("--bench-decision", "");
+    const int bench_steps = (int)a.integer("--bench-steps", 5000, 1, 100000000);
+    if (!bench.empty()) {
+        const std::vector<long> counts = a.integers("--bench-decision", bench, 1, 64);
+        a.finish();
+        return bench_decision(counts, c.hidden, bench_steps, c.seed, json);
+    }
     a.finish();
     c.validate();
     if (budget > 0) {
