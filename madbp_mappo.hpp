@@ -28,6 +28,8 @@
 
 #include "madbp_train.hpp"
 
+#include <mutex>
+
 namespace madbp {
 
 // =============================================================================================
@@ -394,7 +396,7 @@ struct MappoConfig {
                 {"mappo.vf_coef", f(ppo.vf_coef)}, {"mappo.ent_coef", f(ppo.ent_coef)},
                 {"mappo.max_grad_norm", f(max_grad_norm)}, {"mappo.seed", std::to_string(seed)},
                 {"mappo.rewards", "shaping " + f(rewards.shaping) + ", success " + f(rewards.success_bonus) +
-                                      ", collision " + f(rewards.collision) + ", time " + f(rewards.time)}};
+                                      ", collision " + f(rewards.collision) + ", time " + f(rewards.time) + ", at_goal " + f(rewards.at_goal)}};
     }
 };
 
@@ -754,12 +756,46 @@ private:
     long calls_ = 0;
 };
 
-// Per-episode MAPPO policies from one policy file (loaded once; each episode gets its own
+// Per-episode MAPPO policies from policy files, loaded once each (every episode gets its own
 // copy, so episodes can run in parallel). Usable for evaluation and as the demonstrator of
-// `collect` (SPEC 7: the paper's source of demonstrations).
-inline DemonstratorFactory mappo_demonstrator(const std::string& model_path) {
-    auto shared = std::make_shared<MappoNet>(load_mappo(model_path));
-    return [shared](const World&, uint64_t) { return std::unique_ptr<Policy>(new MappoPolicy(shared->clone())); };
+// `collect` (SPEC 7: the paper's source of demonstrations). Since a policy drives one team
+// size and collect records teams of 1..n_train_max, `path` may contain "{n}", replaced by the
+// episode's team size (e.g. "models/mappo/empty-{n}.safetensors"); without it every episode
+// must have the policy's n. A missing file or a wrong n throws when the episode starts.
+inline DemonstratorFactory mappo_demonstrator(const std::string& path) {
+    struct Cache {
+        std::mutex mutex;
+        std::map<int, std::shared_ptr<const MappoNet>> nets;
+    };
+    const size_t slot = path.find("{n}");
+    auto cache = std::make_shared<Cache>();
+    if (slot == std::string::npos) {
+        auto net = std::make_shared<const MappoNet>(load_mappo(path));  // fail early on a bad file
+        cache->nets[net->config.agents] = net;
+    }
+    return [path, slot, cache](const World& world, uint64_t) {
+        std::shared_ptr<const MappoNet> net;
+        {
+            std::lock_guard<std::mutex> lock(cache->mutex);
+            if (slot == std::string::npos) net = cache->nets.begin()->second;
+            else {
+                auto& entry = cache->nets[world.size()];
+                if (!entry) {
+                    std::string file = path;
+                    file.replace(slot, 3, std::to_string(world.size()));
+                    entry = std::make_shared<const MappoNet>(load_mappo(file));
+                    if (entry->config.agents != world.size()) {
+                        const int trained = entry->config.agents;
+                        entry.reset();
+                        throw std::invalid_argument(file + ": trained for " + std::to_string(trained) + " agents, not " +
+                                                    std::to_string(world.size()));
+                    }
+                }
+                net = entry;
+            }
+        }
+        return std::unique_ptr<Policy>(new MappoPolicy(net->clone()));
+    };
 }
 
 }  // namespace madbp

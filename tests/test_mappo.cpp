@@ -301,3 +301,29 @@ TEST_CASE("mappo: bad input raises clear errors") {
     c.out = temp_path("never-written.safetensors");
     CHECK_THROWS_AS(train_mappo(c), std::runtime_error);
 }
+
+TEST_CASE("mappo: demonstrations from MAPPO policies, one per team size through {n}") {
+    const std::string pattern = temp_path("demo-{n}.safetensors");
+    for (int n = 1; n <= 2; ++n) {
+        MappoConfig c = tiny_config("empty", n, 1);
+        c.out = temp_path("demo-" + std::to_string(n) + ".safetensors");
+        train_mappo(c);
+    }
+    CollectConfig cc;
+    cc.maps = {"empty"};
+    cc.n_train_max = 2;
+    cc.episodes = 2;
+    cc.successful_only = false;
+    cc.quiet = true;
+    DemoSet set = collect_demonstrations(cc, mappo_demonstrator(pattern), "mappo:" + pattern);
+    REQUIRE(set.episodes.size() == 4);
+    CHECK(set.episodes[0].agents == 1);
+    CHECK(set.episodes[3].agents == 2);
+    CHECK(set.episodes[3].steps > 0);
+    // One fixed policy cannot record the other team size.
+    CHECK_THROWS_WITH(collect_demonstrations(cc, mappo_demonstrator(temp_path("demo-2.safetensors")), "mappo"),
+                      doctest::Contains("trained for 2 agents"));
+    cc.n_train_max = 3;  // no policy for n = 3
+    CHECK_THROWS_WITH(collect_demonstrations(cc, mappo_demonstrator(pattern), "mappo"), doctest::Contains("demo-3.safetensors"));
+    for (int n = 1; n <= 2; ++n) remove_outputs(temp_path("demo-" + std::to_string(n) + ".safetensors"));
+}
