@@ -39,17 +39,17 @@ inline void register_mappo_methods(std::vector<Method>& m) {
 
 // Per-step decision time (paper Fig. 3b) of MAPPO (the actor on every agent, untrained weights:
 // the time depends only on the architecture) and of CLF-QP, for each team size, in one run on
-// one thread: ms per act() on empty-map worlds stepped with the actions.
+// one thread: microseconds per act() on empty-map worlds stepped with the actions.
 inline int bench_decision(const std::vector<long>& counts, int hidden, int steps, uint64_t seed, bool json) {
     madbp::set_num_threads(1);
-    if (!json) std::printf("%4s %12s %12s\n", "n", "mappo_ms", "clfqp_ms");
+    if (!json) std::printf("%4s %12s %12s\n", "n", "mappo_us", "clfqp_us");
     for (long n : counts) {
         madbp::MappoNetConfig nc;
         nc.agents = (int)n;
         nc.hidden = hidden;
         madbp::MappoPolicy mappo{madbp::MappoNet(nc, seed)};
         madbp::ClfQp clfqp;
-        double ms[2];
+        double us[2];
         madbp::Policy* policies[2] = {&mappo, &clfqp};
         for (int k = 0; k < 2; ++k) {
             madbp::WorldConfig wc;
@@ -62,12 +62,12 @@ inline int bench_decision(const std::vector<long>& counts, int hidden, int steps
                 if (s % 100 == 99) w = madbp::make_random_world("empty", (int)n, seed + s, 1.2, wc);
                 else w.step(u);
             }
-            ms[k] = std::chrono::duration<double, std::milli>(std::chrono::steady_clock::now() - t0).count() / steps;
+            us[k] = std::chrono::duration<double, std::micro>(std::chrono::steady_clock::now() - t0).count() / steps;
         }
         if (json)
-            std::printf("%s\n", Json().add("bench", "decision").add("n", n).add("mappo_ms", ms[0]).add("clfqp_ms", ms[1]).line().c_str());
+            std::printf("%s\n", Json().add("bench", "decision").add("n", n).add("mappo_us", us[0]).add("clfqp_us", us[1]).line().c_str());
         else
-            std::printf("%4ld %12.4f %12.4f\n", n, ms[0], ms[1]);
+            std::printf("%4ld %12.2f %12.2f\n", n, us[0], us[1]);
     }
     return 0;
 }
@@ -94,7 +94,7 @@ inline int cmd_mappo(Args& a) {
             "  --threads T         threads (default 2); the result does not depend on it\n"
             "  --seed S            (default 0)\n"
             "  --json              print the summary as JSON\n"
-            "  --bench-decision LIST  instead of training: ms per step of MAPPO (the actor, width\n"
+            "  --bench-decision LIST  instead of training: us per step of MAPPO (the actor, width\n"
             "                      --hidden) and CLF-QP for each team size, e.g. 1,2,4,8,16 (Fig. 3b)\n"
             "  --bench-steps K     steps timed per size (default 5000)\n");
         return 0;
