@@ -18,7 +18,7 @@ SAN_OBJS     := $(patsubst tests/%.cpp,$(BUILD)/san/%.o,$(TEST_SRCS))
 EXAMPLE_SRCS := $(filter-out examples/madbp.cpp,$(wildcard examples/*.cpp))
 EXAMPLES     := $(patsubst examples/%.cpp,$(BUILD)/%,$(EXAMPLE_SRCS))
 
-.PHONY: all deps test test-sanitize demo bench fuzz model clean
+.PHONY: all deps test test-sanitize demo bench fuzz model mappo-models clean
 all: deps $(BUILD)/madbp $(EXAMPLES)
 
 # Install Eigen and doctest through apt when their headers are missing.
@@ -83,6 +83,15 @@ fuzz: deps
 	@mkdir -p $(BUILD)/fuzz-corpus
 	clang++ -std=c++17 -O1 -g -fsanitize=fuzzer,address,undefined $(INCLUDES) -o $(BUILD)/fuzz_checkpoint tests/fuzz_checkpoint.cpp
 	$(BUILD)/fuzz_checkpoint -max_total_time=$(FUZZ_SECONDS) -max_len=4096 $(BUILD)/fuzz-corpus tests/fuzz-seeds
+
+# MAPPO policies (SPEC 3.3; README "MAPPO"): map:n:iterations (~14 min on 2 cores).
+MAPPO_CELLS := empty:1:100 empty:2:200 empty:3:250 empty:4:300 empty:6:400 empty:8:500 \
+               obstacles:2:300 obstacles:3:400 obstacles:4:500 barrier:2:500 barrier:3:500 barrier:4:600
+mappo-models: $(BUILD)/madbp
+	@mkdir -p models/mappo
+	@set -e; for cell in $(MAPPO_CELLS); do IFS=: read map n it <<< "$$cell"; \
+	  $(BUILD)/madbp mappo --map $$map --agents $$n --iterations $$it --threads 2 \
+	    --out models/mappo/$$map-$$n.safetensors; done
 
 clean:
 	rm -rf $(BUILD)

@@ -39,7 +39,7 @@ inline double plan_flops(const madbp::ModelConfig& c, int n, int S) {
     const double G = c.grid, P = c.image_tokens(), Gl = c.local_grid;
     double context = 2 * 9 * (1 * 16 * (G / 2) * (G / 2) + 16 * 32 * (G / 4) * (G / 4) + 32 * D * (G / 8) * (G / 8));
     if (Gl > 0) context += 2 * A * (9 * (8 * (Gl / 2) * (Gl / 2) + 8 * 16 * (Gl / 4) * (Gl / 4)) + 16 * D * (Gl / 4) * (Gl / 4));
-    context += 2 * A * (4 * D + D * D) + 2 * D * D * (A + 2 * (P + A + 1) + A) + 2 * 2 * A * (P + A + 1) * D  // fusion: q, k, v, o projections; scores and sums;
+    context += 2 * A * (4 * D + D * D) + 2 * D * D * (A + 2 * (P + A + 1) + A) + 2 * 2 * A * (P + A + 1) * D;  // fusion: q, k, v, o; scores, sums
     return context + S * denoise;
 }
 

@@ -100,6 +100,7 @@ std::vector<Method> methods() {
                  }});
 #ifdef MADBP_HAVE_NN_METHODS
     register_nn_methods(m);
+    register_mappo_methods(m);
 #endif
     for (const char* later : {"madbp", "mappo", "madiff"}) {
         bool present = false;
@@ -387,6 +388,7 @@ const std::vector<Subcommand>& subcommands() {
 #ifdef MADBP_HAVE_NN_METHODS
         {"collect", "record demonstrations for training", cmd_collect},
         {"train", "train the MA-DBP model", cmd_train},
+        {"mappo", "train a MAPPO policy for one map and team size (SPEC 3.3)", cmd_mappo},
 #endif
     };
     return s;

@@ -5,7 +5,7 @@
 #include <memory>
 #include <sys/stat.h>
 
-#include "madbp_mappo.hpp"
+#include "madbp_train.hpp"
 
 namespace madbp_cli {
 

@@ -5,6 +5,7 @@
 #include <mutex>
 
 #include "madbp_train.hpp"
+#include "methods_mappo.hpp"
 
 namespace madbp_cli {
 
@@ -66,7 +67,7 @@ inline int cmd_collect(Args& a) {
     if (a.flag("--help")) {
         std::printf(
             "madbp collect - record demonstrations for training (SPEC 7)\n"
-            "  --demonstrator D  expert (default; the guided expert of SPEC 3.6)\n"
+            "  --demonstrator D  expert (default) or mappo with --model FILE ({n} in FILE = team size)\n"
             "  --maps LIST       maps (default empty,obstacles,barrier)\n"
             "  --n-train-max N   teams of 1..N agents (default 4)\n"
             "  --episodes E      episodes per (map, n) cell (default 500)\n"
@@ -93,11 +94,15 @@ inline int cmd_collect(Args& a) {
     c.threads = (int)a.integer("--threads", 2, 1, 256);
     c.seed = (uint64_t)a.integer("--seed", 0, 0);
     std::string out = a.str("--out", "demos.bin");
+    std::string model = a.str("--model", "");
     bool json = a.flag("--json");
     a.finish();
-    if (dem != "expert") throw std::invalid_argument("--demonstrator: unknown demonstrator '" + dem + "' (expected expert)");
+    if (dem != "expert" && dem != "mappo") throw std::invalid_argument("--demonstrator: unknown demonstrator '" + dem + "' (expected expert or mappo)");
+    if (dem == "mappo" && model.empty())
+        throw std::invalid_argument("--model: --demonstrator mappo needs a policy file, e.g. 'models/mappo/empty-{n}.safetensors' ({n} = team size)");
     auto t0 = std::chrono::steady_clock::now();
-    madbp::DemoSet set = madbp::collect_demonstrations(c, madbp::expert_demonstrator(), dem);
+    madbp::DemoSet set = madbp::collect_demonstrations(c, dem == "mappo" ? madbp::mappo_demonstrator(model) : madbp::expert_demonstrator(),
+                                                       dem == "mappo" ? "mappo:" + model : dem);
     double secs = std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count();
     madbp::save_demos(out, set);
     long steps = 0;

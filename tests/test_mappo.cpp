@@ -1,4 +1,4 @@
-// Tests of MAPPO (madbp_mappo.hpp, SPEC 3.3): GAE and the clipped objective against
+// Tests of MAPPO (madbp_train.hpp, SPEC 3.3): GAE and the clipped objective against
 // hand-computed values, the Gaussian and network gradients against central differences, the
 // lidar on a hand-placed scene, a short one-agent training run that must learn, checkpoints
 // (round trip, exact resume, determinism) and clear errors on bad input.
@@ -6,7 +6,7 @@
 
 #include <cstdio>
 
-#include "madbp_mappo.hpp"
+#include "madbp_train.hpp"
 
 using namespace madbp;
 
