@@ -1884,7 +1884,7 @@ public:
         const ModelConfig& c = config;
         check_batch(batch);
         batch_ = &batch;
-        const int B = batch.B, n = batch.n, A = B * n, G = c.grid, P = c.image_tokens();
+        const int B = batch.B, n = batch.n, G = c.grid, P = c.image_tokens();
         auto& e = enc_;
         e.g1.forward(batch.grid, G, G, e.g1o);
         e.r1.forward(e.g1o, e.g1a);
@@ -1925,7 +1925,7 @@ public:
         e.fuse.forward(e.pose_tok, n, e.kv, Lk, B, e.kv_mask.data(), e.att);
         e.pre_ln = e.pose_tok + e.att;
         e.ln.forward(e.pre_ln, ctx_);
-        (void)A;
+        make_column_masks(batch);  // for the U-Net's BatchNorm; constant while the batch is
     }
 
     // eps (2, H*A) = eps_theta(x_noisy (2, H*A), k (B) diffusion step per scene, context).
@@ -1946,7 +1946,6 @@ public:
         s.cond_pre.resize(c.dim, A);
         for (int a = 0; a < A; ++a) s.cond_pre.col(a) = ctx_.col(a) + s.tok.col(a / n);
         s.cond_act.forward(s.cond_pre, cond_);
-        make_column_masks(batch);
         process(x_noisy, batch);
         unet_forward(proc_.out, eps);
     }
@@ -2290,11 +2289,13 @@ struct NoiseSchedule {
             alpha_bar[k] = alpha_bar[k - 1] * (1 - beta);
         }
     }
+    // The diffusion step of DDIM step s of S (s = S .. 1 visits K .. K/S, s = 0 is clean).
+    int ddim_step(int s, int S) const { return (int)std::lround((double)s * K / S); }
     // The S diffusion steps DDIM visits, descending: K, ..., K/S (rounded), then 0 (clean).
     std::vector<int> ddim_steps(int S) const {
         if (S < 1 || S > K) throw std::invalid_argument("sample_steps: " + std::to_string(S) + " must be in [1, " + std::to_string(K) + "]");
         std::vector<int> ks;
-        for (int s = S; s >= 1; --s) ks.push_back((int)std::lround((double)s * K / S));
+        for (int s = S; s >= 1; --s) ks.push_back(ddim_step(s, S));
         ks.push_back(0);
         return ks;
     }
@@ -2351,8 +2352,7 @@ void sample_windows(Denoiser& model, const NoiseSchedule& schedule, const SceneB
     impose();
     step_buf.resize(B);
     for (int s = S; s >= 1; --s) {
-        const int k = (int)std::lround((double)s * schedule.K / S);
-        const int k_prev = (int)std::lround((double)(s - 1) * schedule.K / S);
+        const int k = schedule.ddim_step(s, S), k_prev = schedule.ddim_step(s - 1, S);
         std::fill(step_buf.begin(), step_buf.end(), k);
         model.denoise(x, step_buf.data(), out);
         const double ab = schedule.alpha_bar[k], ab_prev = schedule.alpha_bar[k_prev];
