@@ -1,6 +1,7 @@
 // cli_common.hpp - argument parsing and output helpers shared by the madbp command-line tool.
 // Not part of the library: the tool's own plumbing.
 #pragma once
+#include <algorithm>
 #include <cstdio>
 #include <map>
 #include <set>
@@ -18,13 +19,16 @@ struct Args {
     std::set<std::string> flags, used;
     std::vector<std::string> positional;
 
-    Args(int argc, char** argv, int first = 2) {
-        for (int i = first; i < argc; ++i) {
-            std::string a = argv[i];
+    Args(int argc, char** argv, int first = 2) : Args(std::vector<std::string>(argv + std::min(first, argc), argv + argc)) {}
+    // Options built in code, e.g. Args({"--model", path}) for a method the suite runs.
+    explicit Args(const std::vector<std::string>& args) {
+        const size_t n = args.size();
+        for (size_t i = 0; i < n; ++i) {
+            const std::string& a = args[i];
             if (a.rfind("--", 0) == 0) {
                 auto eq = a.find('=');
                 if (eq != std::string::npos) values[a.substr(0, eq)] = a.substr(eq + 1);
-                else if (i + 1 < argc && std::string(argv[i + 1]).rfind("--", 0) != 0) values[a] = argv[++i];
+                else if (i + 1 < n && args[i + 1].rfind("--", 0) != 0) values[a] = args[++i];
                 else flags.insert(a);
             } else {
                 positional.push_back(a);
