@@ -1745,19 +1745,22 @@ struct SceneBatch {
     Mat pose;                       // (4, A) normalised current position x, y and goal x, y
     Mat grid;                       // (1, G*G*B) occupancy grid per scene, column b*G*G + row*G + col
     Mat local;                      // (1, Gl*Gl*A) each agent's crop of the map (local_crop), when Gl > 0
+    bool shared_grid = false;       // grid holds one map for every scene (planning only; encoded once)
 
     int agents() const { return B * n; }
-    void resize(int B_, int n_, int G, int Gl = 0) {
+    int grid_scenes() const { return shared_grid ? 1 : B; }
+    void resize(int B_, int n_, int G, int Gl = 0, bool shared = false) {
         B = B_;
         n = n_;
+        shared_grid = shared;
         agent_mask.assign((size_t)B * n, 0.0f);
         slot.assign((size_t)B * n, 0);
         count.assign(B, 0);
         pose.setZero(4, B * n);
-        grid.setZero(1, (long)G * G * B);
+        grid.setZero(1, (long)G * G * grid_scenes());
         local.setZero(1, (long)Gl * Gl * B * n);
     }
-    void resize(int B_, int n_, const ModelConfig& c) { resize(B_, n_, c.grid, c.local_grid); }
+    void resize(int B_, int n_, const ModelConfig& c, bool shared = false) { resize(B_, n_, c.grid, c.local_grid, shared); }
 };
 
 // An agent's own view of the static map: Gl x Gl cells of width 2 * extent / Gl centred on p
@@ -1890,7 +1893,13 @@ public:
         e.r1.forward(e.g1o, e.g1a);
         e.g2.forward(e.g1a, G / 2, G / 2, e.g2o);
         e.r2.forward(e.g2o, e.g2a);
-        e.g3.forward(e.g2a, G / 4, G / 4, e.img);
+        if (batch.shared_grid) {  // one map for every scene: encode it once, give each scene a copy
+            e.g3.forward(e.g2a, G / 4, G / 4, e.img_one);
+            e.img.resize(c.dim, (long)P * B);
+            for (int b = 0; b < B; ++b) e.img.middleCols((long)b * P, P) = e.img_one;
+        } else {
+            e.g3.forward(e.g2a, G / 4, G / 4, e.img);
+        }
         e.img_ids.resize((size_t)P * B);
         for (int j = 0; j < P * B; ++j) e.img_ids[j] = j % P;
         e.pe_img.forward(e.img_ids.data(), P * B, e.tmp);
@@ -1987,7 +1996,7 @@ private:
         LayerNorm ln;
         std::vector<int> img_ids, count_ids;
         std::vector<float> kv_mask;
-        Mat g1o, g1a, g2o, g2a, img, tmp, local_tok, p1, p1a, pose_tok, count_tok, kv, att, pre_ln, l1o, l1a, l2o, l2a;
+        Mat g1o, g1a, g2o, g2a, img, img_one, tmp, local_tok, p1, p1a, pose_tok, count_tok, kv, att, pre_ln, l1o, l1a, l2o, l2a;
         Mat d_l1o, d_l1a, d_l2o, d_l2a, d_local;
         Mat d_pre, d_pose, d_kv, d_img, d_g2a, d_g2o, d_g1a, d_g1o, d_grid, d_p1a, d_p1, d_posein, d_count;
     } enc_;
@@ -2085,7 +2094,7 @@ private:
         if (b.n > config.n_max)
             throw std::invalid_argument("scene batch: " + std::to_string(b.n) + " agent slots exceed the model's n_max = " + std::to_string(config.n_max));
         if ((long)b.agent_mask.size() != A || (long)b.slot.size() != A || (long)b.count.size() != b.B || b.pose.rows() != 4 ||
-            b.pose.cols() != A || b.grid.rows() != 1 || b.grid.cols() != (long)config.grid * config.grid * b.B ||
+            b.pose.cols() != A || b.grid.rows() != 1 || b.grid.cols() != (long)config.grid * config.grid * b.grid_scenes() ||
             b.local.cols() != (long)config.local_grid * config.local_grid * A)
             throw std::invalid_argument("scene batch: array sizes do not match B = " + std::to_string(b.B) + ", n = " + std::to_string(b.n));
         for (int s = 0; s < b.B; ++s)
@@ -2222,6 +2231,7 @@ private:
     void context_backward(const Mat& d_ctx, const SceneBatch& batch) {
         const int B = batch.B, n = batch.n, G = config.grid, P = config.image_tokens(), Lk = P + n + 1;
         auto& e = enc_;
+        if (batch.shared_grid) throw std::logic_error("context backward: training needs one grid per scene (shared_grid is for planning)");
         e.ln.backward(e.pre_ln, d_ctx, e.d_pre);
         e.fuse.backward(e.pose_tok, n, e.kv, Lk, B, e.kv_mask.data(), e.d_pre, e.d_pose, e.d_kv);
         e.d_pose += e.d_pre;
@@ -2380,6 +2390,11 @@ void sample_windows(Denoiser& model, const NoiseSchedule& schedule, const SceneB
 class DiffusionPlanner {
 public:
     SamplerConfig sampler;
+    // Neighbourhood planning for teams larger than the model was trained on: with K > 0 and
+    // more than K agents, each agent's window comes from its own scene of itself and its K-1
+    // nearest agents (n scenes of K agents, sampled as one batch), so the model never attends
+    // over more agents than it saw in training. 0: the whole team in one scene (the paper's).
+    int neighbours = 0;
 
     explicit DiffusionPlanner(MadbpModel model, uint64_t seed = 0)
         : model_(std::move(model)), schedule_(model_.config.diffusion_steps), rng_(seed) {
@@ -2402,35 +2417,53 @@ public:
     void plan_into(const World& world, Plan& out) {
         auto t0 = std::chrono::steady_clock::now();
         const ModelConfig& c = model_.config;
-        const int n = world.size(), H = c.horizon, G = c.grid;
-        if (n > c.n_max)
-            throw std::invalid_argument("planner: " + std::to_string(n) + " agents exceed the model's n_max = " + std::to_string(c.n_max));
+        const int n = world.size(), H = c.horizon;
         out.ids.resize(n);
         out.waypoints.resize(n);
         if (n == 0) { out.plan_ms = 0; return; }
-        if (batch_.B != 1 || batch_.n != n) {  // a team of another size: new buffers, grid redrawn
-            batch_.resize(1, n, c);
+        for (const Agent& a : world.agents())
+            if (!std::isfinite(a.pos.x + a.pos.y + a.goal.x + a.goal.y))  // the message only on failure: no allocation
+                throw std::invalid_argument("planner: agent " + std::to_string(a.id) + " has a non-finite position or goal");
+        if (neighbours < 0) throw std::invalid_argument("planner: neighbours must be >= 0 (got " + std::to_string(neighbours) + ")");
+        const bool local = neighbours > 0 && neighbours < n;
+        const int scenes = local ? n : 1, per_scene = local ? neighbours : n;
+        if (per_scene > c.n_max)
+            throw std::invalid_argument("planner: " + std::to_string(per_scene) + " agents per scene exceed the model's n_max = " +
+                                        std::to_string(c.n_max) + (local ? "" : " (neighbourhood planning, neighbours <= n_max, plans larger teams)"));
+        if (batch_.B != scenes || batch_.n != per_scene) {  // a team of another size: new buffers, grid redrawn
+            batch_.resize(scenes, per_scene, c, /*shared grid*/ true);
             grid_valid_ = false;
         }
         update_grid(world.map());
-        for (int i = 0; i < n; ++i) {
-            const Agent& a = world.agents()[i];
-            if (!std::isfinite(a.pos.x + a.pos.y + a.goal.x + a.goal.y))  // the message only on failure: no allocation
-                throw std::invalid_argument("planner: agent " + std::to_string(a.id) + " has a non-finite position or goal");
-            batch_.agent_mask[i] = 1;
-            batch_.slot[i] = i;
-            batch_.pose.col(i) << (float)(a.pos.x / c.position_scale), (float)(a.pos.y / c.position_scale),
-                (float)(a.goal.x / c.position_scale), (float)(a.goal.y / c.position_scale);
-            fill_local_crop(batch_, i, world.map(), a.pos, c);
+        // Scene b holds agent b first, then its nearest agents (all agents in order when not local).
+        for (int b = 0; b < scenes; ++b) {
+            members_.resize(n);
+            for (int i = 0; i < n; ++i) members_[i] = i;
+            if (local) {
+                const Vec2 pb = world.agents()[b].pos;
+                auto dist = [&](int i) { const Vec2 d = world.agents()[i].pos - pb; return i == b ? -1.0 : dot(d, d); };
+                std::partial_sort(members_.begin(), members_.begin() + per_scene, members_.end(),
+                                  [&](int i, int j) { return dist(i) < dist(j) || (dist(i) == dist(j) && i < j); });
+            }
+            for (int k = 0; k < per_scene; ++k) {
+                const Agent& a = world.agents()[members_[k]];
+                const int col = b * per_scene + k;
+                batch_.agent_mask[col] = 1;
+                batch_.slot[col] = k;
+                batch_.pose.col(col) << (float)(a.pos.x / c.position_scale), (float)(a.pos.y / c.position_scale),
+                    (float)(a.goal.x / c.position_scale), (float)(a.goal.y / c.position_scale);
+                fill_local_crop(batch_, col, world.map(), a.pos, c);
+            }
+            batch_.count[b] = per_scene;
         }
-        batch_.count[0] = n;
         sample_windows(model_, schedule_, batch_, sampler, rng_, x_, eps_, steps_);
         for (int i = 0; i < n; ++i) {
             out.ids[i] = world.agents()[i].id;
+            const long col = local ? (long)i * per_scene : i;  // agent i's window: first of scene i, or column i
             const int stride = c.waypoint_stride;
             out.waypoints[i].resize((size_t)(H - 1) * stride);
             const Vec2 p0 = world.agents()[i].pos;
-            auto at = [&](int t) { return p0 + Vec2{x_(0, (long)i * H + t) * (double)c.window_scale, x_(1, (long)i * H + t) * (double)c.window_scale}; };
+            auto at = [&](int t) { return p0 + Vec2{x_(0, col * H + t) * (double)c.window_scale, x_(1, col * H + t) * (double)c.window_scale}; };
             for (int t = 1; t < H; ++t)
                 for (int s = 1; s <= stride; ++s)  // linear between sampled waypoints t-1 and t
                     out.waypoints[i][(size_t)(t - 1) * stride + s - 1] = at(t - 1) + (at(t) - at(t - 1)) * ((double)s / stride);
@@ -2446,7 +2479,7 @@ private:
     Map grid_map_;
     bool grid_valid_ = false;
     Mat x_, eps_;
-    std::vector<int> steps_;
+    std::vector<int> steps_, members_;
 
     // Rasterizes the map only when it changed since the last plan.
     void update_grid(const Map& map) {

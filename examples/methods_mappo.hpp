@@ -2,6 +2,7 @@
 // `madbp mappo` training subcommand (SPEC 3.3, 10). Included after madbp.cpp's Method types.
 #pragma once
 #include <chrono>
+#include <cmath>
 #include <memory>
 #include <sys/stat.h>
 
@@ -37,37 +38,69 @@ inline void register_mappo_methods(std::vector<Method>& m) {
                  mappo_method});
 }
 
-// Per-step decision time (paper Fig. 3b) of MAPPO (the actor on every agent, untrained weights:
-// the time depends only on the architecture) and of CLF-QP, for each team size, in one run on
-// one thread: microseconds per act() on empty-map worlds stepped with the actions.
-inline int bench_decision(const std::vector<long>& counts, int hidden, int steps, uint64_t seed, bool json) {
+// Per-step decision time (paper Fig. 3b), all methods measured in one run on one thread:
+// microseconds per act() while the policy drives empty-map worlds (a new random world every 100
+// steps). MAPPO: the actor on every agent (untrained weights of width `hidden`: the time depends
+// only on the architecture). CLF-QP: its closed-form QP per agent. MA-DBP: the whole executor
+// (a window plan every `replan` steps, tracking and the safety filter on every step), so its plan
+// time is amortised over the replan interval; skipped (NaN) when `madbp_model` is empty.
+struct DecisionTime {
+    long n = 0;
+    double mappo_us = NAN, clfqp_us = NAN, madbp_us = NAN;  // per step, whole team
+    double madbp_plan_ms = NAN;                            // per window plan
+};
+inline double time_policy_us(madbp::Policy& policy, int n, int steps, uint64_t seed) {
+    madbp::WorldConfig wc;
+    wc.max_steps = 1 << 30;
+    madbp::World w = madbp::make_random_world("empty", n, seed, 1.2, wc);
+    for (int s = 0; s < 10; ++s) w.step(policy.act(w));  // warm-up
+    const auto t0 = std::chrono::steady_clock::now();
+    for (int s = 0; s < steps; ++s) {
+        const auto u = policy.act(w);
+        if (s % 100 == 99) w = madbp::make_random_world("empty", n, seed + s, 1.2, wc);
+        else w.step(u);
+    }
+    return std::chrono::duration<double, std::micro>(std::chrono::steady_clock::now() - t0).count() / steps;
+}
+inline std::vector<DecisionTime> measure_decision_times(const std::vector<long>& counts, int steps, const std::string& madbp_model,
+                                                        int replan, uint64_t seed, int mappo_hidden = 64) {
     madbp::set_num_threads(1);
-    if (!json) std::printf("%4s %12s %12s\n", "n", "mappo_us", "clfqp_us");
+    std::shared_ptr<madbp::MadbpModel> model;
+    if (!madbp_model.empty()) model = std::make_shared<madbp::MadbpModel>(madbp::load_model(madbp_model));
+    std::vector<DecisionTime> out;
     for (long n : counts) {
+        DecisionTime d;
+        d.n = n;
         madbp::MappoNetConfig nc;
         nc.agents = (int)n;
-        nc.hidden = hidden;
+        nc.hidden = mappo_hidden;
         madbp::MappoPolicy mappo{madbp::MappoNet(nc, seed)};
+        d.mappo_us = time_policy_us(mappo, (int)n, steps, seed);
         madbp::ClfQp clfqp;
-        double us[2];
-        madbp::Policy* policies[2] = {&mappo, &clfqp};
-        for (int k = 0; k < 2; ++k) {
-            madbp::WorldConfig wc;
-            wc.max_steps = 1 << 30;
-            madbp::World w = madbp::make_random_world("empty", (int)n, seed, 1.2, wc);
-            for (int s = 0; s < 10; ++s) w.step(policies[k]->act(w));  // warm-up
-            const auto t0 = std::chrono::steady_clock::now();
-            for (int s = 0; s < steps; ++s) {
-                const auto u = policies[k]->act(w);
-                if (s % 100 == 99) w = madbp::make_random_world("empty", (int)n, seed + s, 1.2, wc);
-                else w.step(u);
-            }
-            us[k] = std::chrono::duration<double, std::micro>(std::chrono::steady_clock::now() - t0).count() / steps;
+        d.clfqp_us = time_policy_us(clfqp, (int)n, steps, seed);
+        if (model) {
+            madbp::FollowerConfig fc;
+            fc.replan_every = replan;
+            auto planner = std::make_shared<madbp::DiffusionPlanner>(model->clone(), seed);
+            madbp::PlanFollower follower([planner](const madbp::World& w) { return planner->plan(w); }, fc);
+            d.madbp_us = time_policy_us(follower, (int)n, steps, seed);
+            d.madbp_plan_ms = follower.plan_ms();
         }
+        out.push_back(d);
+    }
+    return out;
+}
+
+inline int bench_decision(const std::vector<long>& counts, int hidden, int steps, uint64_t seed, const std::string& madbp_model,
+                          int replan, bool json) {
+    if (!json) std::printf("%4s %12s %12s %12s %14s\n", "n", "mappo_us", "clfqp_us", "madbp_us", "madbp_plan_ms");
+    for (const DecisionTime& d : measure_decision_times(counts, steps, madbp_model, replan, seed, hidden)) {
         if (json)
-            std::printf("%s\n", Json().add("bench", "decision").add("n", n).add("mappo_us", us[0]).add("clfqp_us", us[1]).line().c_str());
+            std::printf("%s\n", Json().add("bench", "decision").add("n", d.n).add("mappo_us", d.mappo_us).add("clfqp_us", d.clfqp_us)
+                                    .add("madbp_us", d.madbp_us).add("madbp_plan_ms", d.madbp_plan_ms).add("replan", replan).line().c_str());
         else
-            std::printf("%4ld %12.2f %12.2f\n", n, us[0], us[1]);
+            std::printf("%4ld %12.2f %12.2f %12.2f %14.3f\n", d.n, d.mappo_us, d.clfqp_us, d.madbp_us, d.madbp_plan_ms);
+        std::fflush(stdout);
     }
     return 0;
 }
@@ -95,7 +128,9 @@ inline int cmd_mappo(Args& a) {
             "  --seed S            (default 0)\n"
             "  --json              print the summary as JSON\n"
             "  --bench-decision LIST  instead of training: us per step of MAPPO (the actor, width\n"
-            "                      --hidden) and CLF-QP for each team size, e.g. 1,2,4,8,16 (Fig. 3b)\n"
+            "                      --hidden), CLF-QP and MA-DBP (plan amortised over --replan M\n"
+            "                      steps, default 8; --model FILE, default the shipped model,\n"
+            "                      'none' to skip) for each team size, e.g. 1,2,4,8,16 (Fig. 3b)\n"
             "  --bench-steps K     steps timed per size (default 5000)\n");
         return 0;
     }
@@ -125,8 +160,10 @@ inline int cmd_mappo(Args& a) {
     const int bench_steps = (int)a.integer("--bench-steps", 5000, 1, 100000000);
     if (!bench.empty()) {
         const std::vector<long> counts = a.integers("--bench-decision", bench, 1, 64);
+        std::string model = a.str("--model", "models/madbp-default.safetensors");
+        const int replan = (int)a.integer("--replan", 8, 1, 1000);
         a.finish();
-        return bench_decision(counts, c.hidden, bench_steps, c.seed, json);
+        return bench_decision(counts, c.hidden, bench_steps, c.seed, model == "none" ? "" : model, replan, json);
     }
     a.finish();
     c.validate();

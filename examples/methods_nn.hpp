@@ -17,6 +17,7 @@ struct PlannerOptions {
     int sample_steps = 0;      // 0: the model's default
     bool goal_inpaint = true;
     double goal_reach = -1;    // < 0: the model's default_goal_reach
+    int neighbours = 0;        // > 0: neighbourhood planning (DiffusionPlanner::neighbours)
 };
 inline PlannerOptions read_planner_options(Args& a) {
     PlannerOptions o;
@@ -24,6 +25,7 @@ inline PlannerOptions read_planner_options(Args& a) {
     o.sample_steps = (int)a.integer("--sample-steps", 0, 0, 1000);
     o.goal_inpaint = !a.flag("--no-goal-inpaint");
     o.goal_reach = a.real("--goal-reach", -1, -1, 100);
+    o.neighbours = (int)a.integer("--neighbours", 0, 0, 1024);
     return o;
 }
 
@@ -49,6 +51,7 @@ inline MethodSpec madbp_method(const PlannerOptions& o, const MethodSetup& s) {
         if (o.sample_steps > 0) planner->sampler.sample_steps = o.sample_steps;
         planner->sampler.goal_inpaint = o.goal_inpaint;
         if (o.goal_reach >= 0) planner->sampler.goal_reach = (float)o.goal_reach;
+        planner->neighbours = o.neighbours;
         return std::make_unique<madbp::PlanFollower>([planner](const madbp::World& w) { return planner->plan(w); }, fc);
     };
     return spec;
@@ -58,7 +61,8 @@ inline void register_nn_methods(std::vector<Method>& m) {
     m.push_back({"madbp",
                  "MA-DBP diffusion planner + tracker (+ safety filter) (SPEC 5-8); --model FILE\n"
                  "                    (default models/madbp-default.safetensors), --sample-steps S,\n"
-                 "                    --no-goal-inpaint, --goal-reach R (world units; default 0.55)",
+                 "                    --no-goal-inpaint, --goal-reach R (world units; default 0.55),\n"
+                 "                    --neighbours K (each agent plans with its K-1 nearest; 0 = whole team)",
                  [](Args& a, const MethodSetup& s) { return madbp_method(read_planner_options(a), s); }});
 }
 
@@ -133,7 +137,8 @@ inline int cmd_train(Args& a) {
             "  --weights a,b,c,d  loss weights noise,boundary,temporal,collision (default .85,.025,.025,.1)\n"
             "  --horizon H --dim D --heads K --channels C1,C2 --kernel K --n-max N --grid G\n"
             "  --processor AAP|LE --window MW|CT --prediction x0|eps --local-grid G (0: off)\n"
-            "  --window-scale W --waypoint-stride K   model configuration (SPEC 5; defaults in README)\n"
+            "  --window-scale W --waypoint-stride K   model configuration (SPEC 5; defaults in README;\n"
+            "                     window scale default min(2.4, 0.6 (H-1) stride / 15))\n"
             "  --checkpoint-every N (default 1000)   --seed S (default 0)\n"
             "  --threads T        data-parallel replicas (default 2); results depend on T, not on the machine\n"
             "  --json             print the final losses as JSON\n");
@@ -175,7 +180,11 @@ inline int cmd_train(Args& a) {
     }
     mc.local_grid = (int)a.integer("--local-grid", mc.local_grid, 0, 256);
     mc.waypoint_stride = (int)a.integer("--waypoint-stride", mc.waypoint_stride, 1, 16);
-    mc.window_scale = (float)a.real("--window-scale", mc.window_scale, 1e-3, 100);
+    // Default: 0.6 world units per 15 steps of window (the top speed's reach), capped at 2.4 (a
+    // complete trajectory crosses the world at most once), so H = 8, 32 and CT windows of ~100
+    // steps get displacements of order 1, as H = 16 does with 0.6.
+    const double span = (double)(mc.horizon - 1) * mc.waypoint_stride;
+    mc.window_scale = (float)a.real("--window-scale", std::min(2.4, 0.6 * span / 15.0), 1e-3, 100);
     std::string pred = a.str("--prediction", "x0");
     if (pred != "x0" && pred != "eps") throw std::invalid_argument("--prediction: expected x0 or eps, got '" + pred + "'");
     mc.prediction = pred == "x0" ? madbp::Prediction::X0 : madbp::Prediction::Eps;

@@ -369,3 +369,44 @@ TEST_CASE("checkpoint: oversized or malformed numbers in the metadata are clear 
     }
     std::remove(path.c_str());
 }
+
+TEST_CASE("planner: neighbourhood planning gives each agent the context of itself and its nearest agents") {
+    ModelConfig c = tiny_config();
+    Map map;
+    map.discs.push_back({Vec2{0.0, 0.0}, 0.5});
+    World w(map);
+    const Vec2 starts[5] = {{-0.9, -0.9}, {-0.6, -0.9}, {0.9, 0.9}, {0.9, 0.6}, {-0.9, 0.9}};
+    for (int i = 0; i < 5; ++i) w.add_agent(starts[i], -starts[i]);
+    // K >= n: the whole team in one scene, exactly the paper's planner.
+    DiffusionPlanner whole(MadbpModel(c, 5), 11), wide(MadbpModel(c, 5), 11);
+    wide.neighbours = 5;
+    Plan a = whole.plan(w), b = wide.plan(w);
+    CHECK(a.waypoints[3][2].x == b.waypoints[3][2].x);
+    // K = 2: agent i is planned in a scene of itself (slot 0) and its nearest agent (slot 1).
+    DiffusionPlanner local(MadbpModel(c, 5), 11);
+    local.neighbours = 2;
+    Plan p = local.plan(w);
+    REQUIRE(p.ids.size() == 5);
+    for (size_t i = 0; i < 5; ++i) {
+        CHECK(p.ids[i] == w.agents()[i].id);
+        for (Vec2 q : p.waypoints[i]) CHECK((std::isfinite(q.x) && std::isfinite(q.y)));
+    }
+    const int nearest[5] = {1, 0, 3, 2, 0};  // by construction of the starts
+    const Mat ctx = local.model().context();
+    REQUIRE(ctx.cols() == 10);
+    for (int i = 0; i < 5; ++i) {
+        World pair(map);
+        pair.add_agent(starts[i], -starts[i]);
+        pair.add_agent(starts[nearest[i]], -starts[nearest[i]]);
+        DiffusionPlanner alone(MadbpModel(c, 5), 11);
+        alone.plan(pair);
+        CHECK((alone.model().context().col(0) - ctx.col(2 * i)).cwiseAbs().maxCoeff() < 1e-5f);
+        CHECK((alone.model().context().col(1) - ctx.col(2 * i + 1)).cwiseAbs().maxCoeff() < 1e-5f);
+    }
+    // A team larger than n_max (6 here) plans in neighbourhoods, and only then.
+    World crowd = make_random_world("empty", 8, 4);
+    CHECK(local.plan(crowd).ids.size() == 8);
+    CHECK_THROWS_AS(whole.plan(crowd), std::invalid_argument);
+    local.neighbours = -1;
+    CHECK_THROWS_AS(local.plan(w), std::invalid_argument);
+}
