@@ -15,6 +15,8 @@
 //   madbp::TrainConfig tc;  tc.out = "model.safetensors";
 //   madbp::train(demos, madbp::ModelConfig{}, tc);             // writes model + training state
 //   madbp::MappoConfig mc; mc.map = "empty"; mc.agents = 4; madbp::train_mappo(mc);   // MAPPO
+//   madbp::MadiffConfig dc; dc.agents = 2; madbp::MadiffTrainConfig dt; dt.out = "madiff.safetensors";
+//   madbp::train_madiff(demos, dc, dt);                        // MADiff baseline (SPEC 3.4)
 //
 // Configuration macros: none beyond madbp.hpp's.
 
@@ -1614,5 +1616,860 @@ inline DemonstratorFactory mappo_demonstrator(const std::string& path) {
 
 }  // namespace madbp
 
+// =============================================================================================
+// MADiff (SPEC 3.4): a return-conditioned diffusion baseline over observation sequences
+// =============================================================================================
+//
+// After zbzhu99/madiff (Zhu et al., "MADiff", 2023), written from its description on the NN
+// core: one 1-D temporal U-Net shared by every agent (agents folded into the batch) with
+// self-attention over the agents at every time step, on each skip connection and at the
+// bottleneck; it diffuses each agent's window of H observations (the MAPPO observation,
+// scaled), the first frame inpainted with the current observation; classifier-free guidance
+// on the window's return; an inverse-dynamics MLP turns (o_t, o_t+1) into the action a_t. One
+// model per map and team size n; the policy replans at every step and executes the first
+// action, raw (no safety filter), as the paper runs it.
+//
+// Normalisation and target (ours where the paper is silent; Diffuser's choices): every
+// observation feature is mapped to [-1, 1] by its minimum and maximum over the training data
+// (stored in the model as the non-trainable tensors norm.lo / norm.hi), and the network
+// predicts the clean window x0 (Diffuser's maze setting; eps prediction left x0_hat far off at
+// high noise here, measured in the README). Guidance is applied to the noise implied by each
+// branch's x0, eps = (x_k - sqrt(ab) x0) / sqrt(1 - ab), which is affine in x0, so it equals
+// x0_u + w (x0_c - x0_u).
+//
+// Shapes: B windows (scenes), n agents, A = B*n agent columns, H window length, O = 18
+// observation features (kMappoObs), D embedding width, C_l U-Net widths. A window tensor is
+// (O, H*A) with column a*H + t, a = b*n + i (agent-major, time fastest), as MA-DBP's.
+//
+// Reward and return (ours; the paper's navigation task has no MADiff reward): per step the
+// team reward is the mean over agents of MAPPO's shaping and contact terms,
+//   r_t = mean_i [ (|p_t^i - g^i| - |p_t+1^i - g^i|) - 0.1 * contacts_t+1^i ],
+// (contacts: other agents closer than 2 r_a, static surfaces closer than r_a), without the
+// constant time term and the success bonus (a one-off +5 would squash every other window
+// into the bottom of [0, 1]). A window's return is the undiscounted sum of its H - 1
+// transitions' rewards, normalised to [0, 1] by the minimum and maximum over the training
+// windows; sampling conditions on the 90th percentile of those normalised returns.
+
+namespace madbp {
+
+constexpr const char* kMadiffFormat = "madiff";
+
+// Architecture and sampling defaults of a MADiff model; stored in the checkpoint.
+struct MadiffConfig {
+    std::string map = "empty";           // map the model was trained on (recorded, not enforced)
+    int agents = 2;                      // n, the fixed team size, in [1, 64]
+    int horizon = 8;                     // H, frames per window incl. the current one; multiple of 2^levels
+    int dim = 32;                        // D, width of the step and return embeddings (cond is 2D)
+    std::vector<int> channels = {32, 64};  // U-Net widths per level
+    int kernel = 3;                      // Conv1d kernel, odd
+    int heads = 4;                       // heads of the agent attention, divides every width
+    int inv_hidden = 128;                // inverse dynamics: 2 Tanh layers of this width
+    int diffusion_steps = 100;           // K
+    int sample_steps = 10;               // S (DDIM, eta = 0), default of the policy
+    float guidance = 1.2f;               // w of classifier-free guidance
+    float condition_dropout = 0.25f;     // training: probability a window's return is dropped
+    float clip = 1.0f;                   // sampling: x0_hat clipped to [-clip, clip] (normalised observations)
+    // Data-derived (set by train_madiff): raw return range and the normalised sampling target.
+    float return_min = 0, return_max = 1, return_target = 0.9f;
+
+    int levels() const { return (int)channels.size(); }
+    void validate() const {
+        auto bad = [](const std::string& f, const std::string& why) { throw std::invalid_argument("madiff config " + f + ": " + why); };
+        if (agents < 1 || agents > 64) bad("agents", std::to_string(agents) + " must be in [1, 64]");
+        if (channels.empty() || channels.size() > 3) bad("channels", "needs 1 to 3 levels");
+        if (heads < 1 || heads > 16) bad("heads", "must be in [1, 16]");
+        for (int c : channels)
+            if (c < 1 || c > 512 || c % heads) bad("channels", "each width must be in [1, 512] and divisible by heads");
+        if (horizon < 2 || horizon > 256 || horizon % (1 << levels()) != 0)
+            bad("horizon", std::to_string(horizon) + " must be in [2, 256] and a multiple of 2^levels");
+        if (dim < 4 || dim > 1024 || dim % 2) bad("dim", "must be even, in [4, 1024]");
+        if (kernel < 1 || kernel > 15 || kernel % 2 == 0) bad("kernel", "must be odd, at most 15");
+        if (inv_hidden < 1 || inv_hidden > 4096) bad("inv_hidden", "must be in [1, 4096]");
+        if (diffusion_steps < 2 || diffusion_steps > 100000) bad("diffusion_steps", "must be in [2, 100000]");
+        if (sample_steps < 1 || sample_steps > diffusion_steps) bad("sample_steps", "must be in [1, diffusion_steps]");
+        if (!(guidance >= 0 && guidance <= 100)) bad("guidance", "must be in [0, 100]");
+        if (!(condition_dropout >= 0 && condition_dropout <= 1)) bad("condition_dropout", "must be in [0, 1]");
+        if (!(clip > 0 && clip < 1e6)) bad("clip", "must be positive");
+        if (!std::isfinite(return_min) || !std::isfinite(return_max) || !(return_max > return_min))
+            bad("return_min/return_max", "need finite values with max > min");
+        if (!(return_target >= -10 && return_target <= 10)) bad("return_target", "must be in [-10, 10]");
+    }
+    std::map<std::string, std::string> to_metadata() const {
+        auto f = [](double v) { char b[32]; std::snprintf(b, sizeof b, "%.9g", v); return std::string(b); };
+        std::string ch;
+        for (size_t i = 0; i < channels.size(); ++i) ch += (i ? "," : "") + std::to_string(channels[i]);
+        return {{"model", kMadiffFormat}, {"madiff.map", map}, {"madiff.agents", std::to_string(agents)},
+                {"madiff.horizon", std::to_string(horizon)}, {"madiff.dim", std::to_string(dim)}, {"madiff.channels", ch},
+                {"madiff.kernel", std::to_string(kernel)}, {"madiff.heads", std::to_string(heads)},
+                {"madiff.inv_hidden", std::to_string(inv_hidden)}, {"madiff.diffusion_steps", std::to_string(diffusion_steps)},
+                {"madiff.sample_steps", std::to_string(sample_steps)}, {"madiff.guidance", f(guidance)},
+                {"madiff.condition_dropout", f(condition_dropout)}, {"madiff.clip", f(clip)},
+                {"madiff.return_min", f(return_min)}, {"madiff.return_max", f(return_max)},
+                {"madiff.return_target", f(return_target)}, {"madiff.obs", kMappoObsLayout},
+                {"madiff.prediction", "x0"}, {"madiff.normalizer", "limits"}};
+    }
+    static MadiffConfig from_metadata(const SafeTensors& st) {
+        auto it = st.metadata.find("model");
+        if (it == st.metadata.end() || it->second != kMadiffFormat)
+            throw std::runtime_error(st.source + ": not a MADiff model (__metadata__['model'] is '" +
+                                     (it == st.metadata.end() ? std::string("missing") : it->second) + "', expected 'madiff')");
+        if (st.meta("madiff.prediction") != "x0" || st.meta("madiff.normalizer") != "limits")
+            throw std::runtime_error(st.source + ": prediction '" + st.meta("madiff.prediction") + "' / normalizer '" +
+                                     st.meta("madiff.normalizer") + "' are not this build's 'x0' / 'limits'");
+        if (st.meta("madiff.obs") != kMappoObsLayout)
+            throw std::runtime_error(st.source + ": observation layout '" + st.meta("madiff.obs") + "' is not this build's '" +
+                                     kMappoObsLayout + "'");
+        auto real = [&](const std::string& k) {
+            const std::string& s = st.meta(k);
+            char* end = nullptr;
+            const float v = std::strtof(s.c_str(), &end);
+            if (s.empty() || s.size() > 40 || *end != '\0' || !std::isfinite(v))
+                throw std::runtime_error(st.source + ": __metadata__['" + k + "'] = '" + s.substr(0, 40) + "' is not a number");
+            return v;
+        };
+        MadiffConfig c;
+        c.map = st.meta("madiff.map");
+        c.agents = detail::meta_int(st, "madiff.agents", 1, 64);
+        c.horizon = detail::meta_int(st, "madiff.horizon", 2, 256);
+        c.dim = detail::meta_int(st, "madiff.dim", 4, 1024);
+        c.kernel = detail::meta_int(st, "madiff.kernel", 1, 15);
+        c.heads = detail::meta_int(st, "madiff.heads", 1, 16);
+        c.inv_hidden = detail::meta_int(st, "madiff.inv_hidden", 1, 4096);
+        c.diffusion_steps = detail::meta_int(st, "madiff.diffusion_steps", 2, 100000);
+        c.sample_steps = detail::meta_int(st, "madiff.sample_steps", 1, 100000);
+        c.channels.clear();
+        const std::string& ch = st.meta("madiff.channels");
+        if (ch.size() > 64) throw std::runtime_error(st.source + ": __metadata__['madiff.channels'] is malformed");
+        std::stringstream ss(ch);
+        for (std::string item; std::getline(ss, item, ',');) {
+            size_t pos = 0;
+            int v = 0;
+            try { v = std::stoi(item, &pos); } catch (...) { pos = 0; }
+            if (pos == 0 || pos != item.size()) throw std::runtime_error(st.source + ": __metadata__['madiff.channels'] is malformed");
+            c.channels.push_back(v);
+        }
+        c.guidance = real("madiff.guidance");
+        c.condition_dropout = real("madiff.condition_dropout");
+        c.clip = real("madiff.clip");
+        c.return_min = real("madiff.return_min");
+        c.return_max = real("madiff.return_max");
+        c.return_target = real("madiff.return_target");
+        try { c.validate(); } catch (const std::invalid_argument& e) { throw std::runtime_error(st.source + ": " + e.what()); }
+        return c;
+    }
+};
+
+// ---------------------------------------------------------------------------------------------
+// Layers of MADiff
+
+// Classifier-free guidance: out = eps_uncond + w (eps_cond - eps_uncond), element-wise.
+// w = 0 gives the unconditional prediction, w = 1 the conditional one.
+inline void classifier_free_guidance(const Mat& eps_cond, const Mat& eps_uncond, float w, Mat& out) {
+    MADBP_ASSERT(eps_cond.rows() == eps_uncond.rows() && eps_cond.cols() == eps_uncond.cols());
+    out = eps_uncond + w * (eps_cond - eps_uncond);
+}
+
+// Which windows keep their return condition in training: keep[b] = 1 with probability
+// 1 - dropout, else 0 (the condition is dropped: the unconditional model is trained).
+inline void condition_keep_mask(int B, float dropout, Rng& rng, std::vector<float>& keep) {
+    keep.resize(B);
+    for (int b = 0; b < B; ++b) keep[b] = rng.uniform() < dropout ? 0.0f : 1.0f;
+}
+
+// Self-attention over the n agents of a scene at each time step, pre-LayerNorm, residual:
+// x (C, T*A) agent-major (A = B*n) -> y (C, T*A) = x + MHA(LN(x)) with the agents of scene b at
+// time t as queries and keys (no mask: the team is fixed). backward(x, T, B, n, dy, dx).
+struct AgentAttention {
+    LayerNorm ln;
+    MultiHeadAttention att;
+    Mat x_tm, z, a_tm, a, d_tm, d_a, d_q, d_kv, d_z;
+
+    AgentAttention() = default;
+    AgentAttention(ParamStore& ps, const std::string& name, int C, int heads, Rng& rng)
+        : ln(ps, name + ".ln", C, rng), att(ps, name + ".attn", C, heads, rng) {}
+    void forward(const Mat& x, int T, int B, int n, Mat& y) {
+        MADBP_ASSERT(x.cols() == (long)T * B * n);
+        detail::agent_to_time_major(x, B, n, T, x_tm);
+        ln.forward(x_tm, z);
+        att.forward(z, n, z, n, B * T, nullptr, a_tm);
+        detail::time_to_agent_major(a_tm, B, n, T, a);
+        y = x + a;
+    }
+    void backward(const Mat& x, int T, int B, int n, const Mat& dy, Mat& dx) {
+        detail::agent_to_time_major(dy, B, n, T, d_tm);
+        att.backward(z, n, z, n, B * T, nullptr, d_tm, d_q, d_kv);
+        d_q += d_kv;
+        ln.backward(x_tm, d_q, d_z);
+        detail::time_to_agent_major(d_z, B, n, T, dx);
+        dx += dy;
+    }
+};
+
+// Inverse dynamics: (o_t, o_t+1) (O, N) each -> a_t (2, N), an MLP [o_t; o_t+1] (2O) ->
+// hidden -> hidden -> 2 with Tanh (Mlp). backward(da) adds the parameter gradients.
+struct InverseDynamics {
+    Mlp mlp;
+    int obs = 0;
+    Mat in;  // (2O, N) the last input
+
+    InverseDynamics() = default;
+    InverseDynamics(ParamStore& ps, const std::string& name, int obs_dim, int hidden, Rng& rng)
+        : mlp(ps, name, 2 * obs_dim, hidden, 2, rng), obs(obs_dim) {}
+    void forward(const Mat& o_t, const Mat& o_next, Mat& a) {
+        MADBP_ASSERT(o_t.rows() == obs && o_next.rows() == obs && o_t.cols() == o_next.cols());
+        in.resize(2 * obs, o_t.cols());
+        in.topRows(obs) = o_t;
+        in.bottomRows(obs) = o_next;
+        mlp.forward(in, a);
+    }
+    void backward(const Mat& da) { mlp.backward(in, da); }
+};
+
+// ---------------------------------------------------------------------------------------------
+// The MADiff denoiser and its inverse dynamics, one parameter store. Tensor names: "step.*",
+// "ret.*" (embeddings), "unet.*" (U-Net), "attn.skip<l>.*", "attn.mid.*", "inv.*".
+class MadiffModel {
+public:
+    MadiffConfig config;
+    std::unique_ptr<ParamStore> params;
+    InverseDynamics inv;
+
+    explicit MadiffModel(const MadiffConfig& c, uint64_t seed = 0) : config(c), params(new ParamStore) {
+        config.validate();
+        build(seed);
+    }
+    MadiffModel(MadiffModel&&) = default;
+    MadiffModel& operator=(MadiffModel&&) = default;
+    MadiffModel clone() const {
+        MadiffModel m(config);
+        m.params->value = params->value;
+        m.set_training(training_);
+        return m;
+    }
+    long parameter_count() const {
+        long k = 0;
+        for (auto& e : params->entries) if (e.trainable) k += e.numel();
+        return k;
+    }
+    void set_training(bool on) {
+        training_ = on;
+        for (auto& b : net_.down) b.set_training(on);
+        for (auto& b : net_.up) b.set_training(on);
+        net_.mid.set_training(on);
+    }
+    bool training() const { return training_; }
+
+    // Per-feature limits of the observations (norm.lo, norm.hi (O), non-trainable).
+    void set_limits(const Vec& lo, const Vec& hi) {
+        MADBP_ASSERT(lo.size() == kMappoObs && hi.size() == kMappoObs);
+        params->vec(lo_, kMappoObs) = lo;
+        params->vec(hi_, kMappoObs) = hi.array().max(lo.array() + 1e-3f).matrix();
+    }
+    // Scaled observations (O, N) -> [-1, 1] per feature, in place (values beyond the training
+    // data's limits map beyond +-1).
+    void normalize(Mat& obs) const {
+        const auto lo = params->vec(lo_, kMappoObs).array(), hi = params->vec(hi_, kMappoObs).array();
+        obs = ((obs.array().colwise() - lo).colwise() * (2.0f / (hi - lo))) - 1.0f;
+    }
+
+    // out (O, H*A) = the predicted clean window x0 from x (O, H*A), k (B) step per window,
+    // ret (B) normalised returns, keep (B) 1 = conditioned on ret, 0 = unconditional. B
+    // windows of n agents; normalised observations.
+    void denoise(const Mat& x, int B, int n, const int* k, const float* ret, const float* keep, Mat& eps) {
+        const MadiffConfig& c = config;
+        const int A = B * n, D = c.dim;
+        MADBP_ASSERT(B >= 1 && n >= 1 && x.rows() == kMappoObs && x.cols() == (long)c.horizon * A);
+        B_ = B, n_ = n;
+        auto& e = emb_;
+        e.k.resize(B);
+        e.ret_in.resize(1, B);
+        e.keep.assign(keep, keep + B);
+        for (int b = 0; b < B; ++b) e.k[b] = (float)k[b], e.ret_in(0, b) = ret[b];
+        sinusoidal_embedding(e.k.data(), B, D, e.sin);
+        e.t1.forward(e.sin, e.th);
+        e.t_act.forward(e.th, e.tha);
+        e.t2.forward(e.tha, e.t_tok);
+        e.r1.forward(e.ret_in, e.rh);
+        e.r_act.forward(e.rh, e.rha);
+        e.r2.forward(e.rha, e.r_tok);
+        e.pre.resize(2 * D, B);
+        e.pre.topRows(D) = e.t_tok;
+        for (int b = 0; b < B; ++b) e.pre.col(b).tail(D) = e.keep[b] * e.r_tok.col(b);
+        e.c_act.forward(e.pre, e.cond_b);
+        cond_.resize(2 * D, A);
+        for (int a = 0; a < A; ++a) cond_.col(a) = e.cond_b.col(a / n);
+        unet_forward(x, eps);
+    }
+
+    // Backward of the last denoise: ADDS the parameter gradients of the loss whose gradient
+    // at eps is d_eps.
+    void backward(const Mat& d_eps) {
+        const int D = config.dim, A = B_ * n_;
+        d_cond_.setZero(2 * D, A);
+        unet_backward(d_eps);
+        auto& e = emb_;
+        e.d_cond_b.setZero(2 * D, B_);
+        for (int a = 0; a < A; ++a) e.d_cond_b.col(a / n_) += d_cond_.col(a);
+        e.c_act.backward(e.pre, e.d_cond_b, e.d_pre);
+        e.d_t = e.d_pre.topRows(D);
+        e.d_r.resize(D, B_);
+        for (int b = 0; b < B_; ++b) e.d_r.col(b) = e.keep[b] * e.d_pre.col(b).tail(D);
+        e.t2.backward(e.tha, e.d_t, e.d_tha);
+        e.t_act.backward(e.th, e.d_tha, e.d_th);
+        e.t1.backward(e.sin, e.d_th, e.d_sin);
+        e.r2.backward(e.rha, e.d_r, e.d_rha);
+        e.r_act.backward(e.rh, e.d_rha, e.d_rh);
+        e.r1.backward(e.ret_in, e.d_rh, e.d_ret);
+    }
+
+private:
+    bool training_ = true;
+    int B_ = 0, n_ = 0, lo_ = -1, hi_ = -1;
+    Mat cond_, d_cond_;
+    struct Embed {
+        Linear t1, t2, r1, r2;
+        Mish t_act, r_act, c_act;
+        std::vector<float> k, keep;
+        Mat sin, th, tha, t_tok, ret_in, rh, rha, r_tok, pre, cond_b;
+        Mat d_cond_b, d_pre, d_t, d_r, d_tha, d_th, d_sin, d_rha, d_rh, d_ret;
+    } emb_;
+    struct UNet {
+        std::vector<ConvBlock> down, up;
+        ConvBlock mid;
+        std::vector<AgentAttention> skip_attn;
+        AgentAttention mid_attn;
+        std::vector<MaxPool1d> pool;
+        std::vector<Upsample1d> upsample;
+        Conv1d decoder;
+        std::vector<Mat> h, s, pooled, up_buf, cat, up_out, d_s;
+        Mat mid_h, mid_out;
+        Mat d_cur, d_cat, d_up, d_mid, d_pool, d_h, d_tmp;
+    } net_;
+
+    void build(uint64_t seed) {
+        Rng rng(seed);
+        ParamStore& ps = *params;
+        const MadiffConfig& c = config;
+        const int D = c.dim, L = c.levels(), Dc = 2 * D;
+        emb_.t1 = Linear(ps, "step.l1", D, 2 * D, rng);
+        emb_.t2 = Linear(ps, "step.l2", 2 * D, D, rng);
+        emb_.r1 = Linear(ps, "ret.l1", 1, D, rng);
+        emb_.r2 = Linear(ps, "ret.l2", D, D, rng);
+        auto& u = net_;
+        int cin = kMappoObs;
+        for (int l = 0; l < L; ++l) {
+            u.down.emplace_back(ps, "unet.down" + std::to_string(l), cin, c.channels[l], c.kernel, Dc, rng);
+            u.skip_attn.emplace_back(ps, "attn.skip" + std::to_string(l), c.channels[l], c.heads, rng);
+            cin = c.channels[l];
+        }
+        u.mid = ConvBlock(ps, "unet.mid", cin, cin, c.kernel, Dc, rng);
+        u.mid_attn = AgentAttention(ps, "attn.mid", cin, c.heads, rng);
+        u.up.resize(L);
+        for (int l = L - 1; l >= 0; --l) {
+            u.up[l] = ConvBlock(ps, "unet.up" + std::to_string(l), cin + c.channels[l], c.channels[l], c.kernel, Dc, rng);
+            cin = c.channels[l];
+        }
+        u.decoder = Conv1d(ps, "unet.decoder", c.channels[0], kMappoObs, 1, rng);
+        u.pool.resize(L);
+        u.upsample.resize(L);
+        for (auto* v : {&u.h, &u.s, &u.pooled, &u.up_buf, &u.cat, &u.up_out, &u.d_s}) v->resize(L);
+        inv = InverseDynamics(ps, "inv", kMappoObs, c.inv_hidden, rng);
+        lo_ = ps.add("norm.lo", {kMappoObs}, Init::zeros(), rng, false);
+        hi_ = ps.add("norm.hi", {kMappoObs}, Init::ones(), rng, false);
+        params->vec(lo_, kMappoObs).setConstant(-1.0f);
+    }
+    const Mat& down_input(const Mat& x, int l) const { return l == 0 ? x : net_.pooled[l - 1]; }
+    const Mat& up_input(int l) const { return l == config.levels() - 1 ? net_.mid_out : net_.up_out[l + 1]; }
+
+    void unet_forward(const Mat& x, Mat& eps) {
+        auto& u = net_;
+        const int L = config.levels(), H = config.horizon;
+        x_ = &x;
+        for (int l = 0; l < L; ++l) {
+            u.down[l].forward(down_input(x, l), H >> l, cond_, nullptr, u.h[l]);
+            u.skip_attn[l].forward(u.h[l], H >> l, B_, n_, u.s[l]);  // agents attend on the skip
+            u.pool[l].forward(u.h[l], H >> l, u.pooled[l]);
+        }
+        u.mid.forward(u.pooled[L - 1], H >> L, cond_, nullptr, u.mid_h);
+        u.mid_attn.forward(u.mid_h, H >> L, B_, n_, u.mid_out);  // and at the bottleneck
+        for (int l = L - 1; l >= 0; --l) {
+            u.upsample[l].forward(up_input(l), u.up_buf[l]);
+            const long cu = u.up_buf[l].rows(), cs = u.s[l].rows();
+            u.cat[l].resize(cu + cs, u.up_buf[l].cols());
+            u.cat[l].topRows(cu) = u.up_buf[l];
+            u.cat[l].bottomRows(cs) = u.s[l];
+            u.up[l].forward(u.cat[l], H >> l, cond_, nullptr, u.up_out[l]);
+        }
+        u.decoder.forward(u.up_out[0], H, eps);
+    }
+    void unet_backward(const Mat& d_eps) {
+        auto& u = net_;
+        const int L = config.levels(), H = config.horizon;
+        const Mat& x = *x_;
+        u.decoder.backward(u.up_out[0], H, d_eps, u.d_cur);
+        for (int l = 0; l < L; ++l) {
+            u.up[l].backward(u.cat[l], H >> l, cond_, nullptr, u.d_cur, u.d_cat, d_cond_);
+            const long cu = up_input(l).rows(), cs = u.s[l].rows();
+            u.d_s[l] = u.d_cat.bottomRows(cs);
+            u.d_up = u.d_cat.topRows(cu);
+            u.upsample[l].backward(up_input(l), u.d_up, u.d_cur);
+        }
+        u.mid_attn.backward(u.mid_h, H >> L, B_, n_, u.d_cur, u.d_mid);
+        u.mid.backward(u.pooled[L - 1], H >> L, cond_, nullptr, u.d_mid, u.d_pool, d_cond_);
+        for (int l = L - 1; l >= 0; --l) {
+            u.pool[l].backward(u.h[l], H >> l, u.d_pool, u.d_h);
+            u.skip_attn[l].backward(u.h[l], H >> l, B_, n_, u.d_s[l], u.d_tmp);
+            u.d_h += u.d_tmp;
+            u.down[l].backward(down_input(x, l), H >> l, cond_, nullptr, u.d_h, u.d_pool, d_cond_);
+        }
+    }
+    const Mat* x_ = nullptr;  // the input of the last denoise (kept for backward)
+};
+
+// Model files (SPEC 11): parameters as safetensors, MadiffConfig in __metadata__ (model =
+// madiff) plus `extra` fields. load_madiff validates the file, the metadata and that every
+// tensor matches the declared architecture, and that every value is finite.
+inline void save_madiff(const std::string& path, const MadiffModel& m, std::map<std::string, std::string> extra = {}) {
+    auto md = m.config.to_metadata();
+    for (auto& kv : extra) md[kv.first] = kv.second;
+    save_params(path, *m.params, md);
+}
+namespace detail {
+inline MadiffModel madiff_from(const SafeTensors& st) {
+    MadiffModel m(MadiffConfig::from_metadata(st));
+    read_param_tensors(st, *m.params);
+    for (long k = 0; k < m.params->size(); ++k)
+        if (!std::isfinite(m.params->value[k])) throw std::runtime_error(st.source + ": a parameter is not finite");
+    m.set_training(false);
+    return m;
+}
+}  // namespace detail
+inline MadiffModel load_madiff(const std::string& path) { return detail::madiff_from(load_safetensors(path)); }
+
+// ---------------------------------------------------------------------------------------------
+// MADiff data: the demonstrations of one map and team size as observation sequences
+
+// Episodes of exactly n agents on one map, with every frame's scaled observations, actions,
+// team rewards, and the windows (episode, first frame) that fit inside their episode.
+struct MadiffData {
+    int n = 0, H = 0;
+    std::vector<Mat> obs;              // per episode (O, frames*n), column f*n + i
+    std::vector<Mat> act;              // per episode (2, steps*n), column t*n + i
+    std::vector<std::vector<float>> reward;  // per episode (steps) team reward of step t -> t+1
+    std::vector<std::pair<int, int>> windows;
+    std::vector<float> window_return;  // raw return of each window
+};
+
+// Team reward of the step from frame t to t+1 of demonstration d (see the section comment).
+inline float madiff_step_reward(const Demonstration& d, int t, double radius = WorldConfig{}.radius) {
+    const int n = d.agents;
+    double sum = 0;
+    for (int i = 0; i < n; ++i) {
+        const Vec2 p0 = d.position(t, i), p1 = d.position(t + 1, i);
+        int contacts = static_clearance(d.map, p1) < radius ? 1 : 0;
+        for (int j = 0; j < n; ++j)
+            if (j != i && norm(p1 - d.position(t + 1, j)) < 2 * radius) contacts++;
+        sum += norm(p0 - d.goals[i]) - norm(p1 - d.goals[i]) - 0.1 * contacts;
+    }
+    return (float)(sum / n);
+}
+
+// Scaled observations (as mappo_observe_all) of every frame of d, (O, frames*n).
+inline Mat madiff_episode_observations(const Demonstration& d) {
+    const int n = d.agents, frames = d.steps + 1;
+    World w(d.map);
+    for (int i = 0; i < n; ++i) w.add_agent(d.pos[i], d.goals[i]);
+    Mat obs(kMappoObs, (long)frames * n);
+    for (int f = 0; f < frames; ++f) {
+        for (int i = 0; i < n; ++i) w.set_state(w.agents()[i].id, d.pos[(size_t)f * n + i], d.vel[(size_t)f * n + i]);
+        mappo_observe_all(w, obs, (long)f * n);
+    }
+    return obs;
+}
+
+// Selects the episodes of `demos` on `map` with exactly n agents and at least H frames.
+inline MadiffData madiff_data(const DemoSet& demos, const std::string& map, int n, int H) {
+    MadiffData out;
+    out.n = n, out.H = H;
+    for (size_t e = 0; e < demos.episodes.size(); ++e) {
+        const Demonstration& d = demos.episodes[e];
+        if (d.map_name != map || d.agents != n || d.steps + 1 < H) continue;
+        if ((long)d.act.size() != (long)d.steps * n) throw std::invalid_argument("madiff: episode " + std::to_string(e) + " has no actions");
+        Mat obs;
+        try {
+            obs = madiff_episode_observations(d);
+        } catch (const std::exception& ex) {
+            throw std::invalid_argument("madiff: episode " + std::to_string(e) + " of the dataset: " + ex.what());
+        }
+        const int k = (int)out.obs.size();
+        out.obs.push_back(std::move(obs));
+        Mat act(2, (long)d.steps * n);
+        for (long j = 0; j < act.cols(); ++j) act.col(j) << (float)d.act[j].x, (float)d.act[j].y;
+        out.act.push_back(std::move(act));
+        std::vector<float> r(d.steps);
+        for (int t = 0; t < d.steps; ++t) r[t] = madiff_step_reward(d, t);
+        for (int t = 0; t + H - 1 <= d.steps; ++t) {
+            double R = 0;
+            for (int s = t; s < t + H - 1; ++s) R += r[s];
+            out.windows.push_back({k, t});
+            out.window_return.push_back((float)R);
+        }
+        out.reward.push_back(std::move(r));
+    }
+    if (out.windows.empty())
+        throw std::invalid_argument("madiff: the dataset has no episode on map '" + map + "' with " + std::to_string(n) +
+                                    " agents and at least " + std::to_string(H) + " frames (collect with --maps " + map +
+                                    " --n-train-max >= " + std::to_string(n) + ")");
+    return out;
+}
+
+// One training batch: B windows, their clean observations, returns and actions.
+struct MadiffBatch {
+    int B = 0, n = 0;
+    Mat x0;                    // (O, H*A) clean windows
+    std::vector<float> ret;    // (B) normalised returns
+    Mat o_t, o_next, act;      // (O, (H-1)*A), (O, (H-1)*A), (2, (H-1)*A): the windows' transitions
+};
+
+inline void make_madiff_batch(const MadiffData& data, const MadiffConfig& c, int B, Rng& rng, MadiffBatch& mb) {
+    const int n = data.n, H = c.horizon, A = B * n;
+    MADBP_ASSERT(H == data.H);
+    mb.B = B, mb.n = n;
+    mb.x0.resize(kMappoObs, (long)H * A);
+    mb.ret.resize(B);
+    mb.o_t.resize(kMappoObs, (long)(H - 1) * A);
+    mb.o_next.resize(kMappoObs, (long)(H - 1) * A);
+    mb.act.resize(2, (long)(H - 1) * A);
+    for (int b = 0; b < B; ++b) {
+        const int w = rng.uniform_int((int)data.windows.size());
+        const int e = data.windows[w].first, t0 = data.windows[w].second;
+        mb.ret[b] = (data.window_return[w] - c.return_min) / (c.return_max - c.return_min);
+        for (int i = 0; i < n; ++i) {
+            const long a = (long)b * n + i;
+            for (int t = 0; t < H; ++t) mb.x0.col(a * H + t) = data.obs[e].col((long)(t0 + t) * n + i);
+            for (int t = 0; t + 1 < H; ++t) {
+                const long j = a * (H - 1) + t;
+                mb.o_t.col(j) = data.obs[e].col((long)(t0 + t) * n + i);
+                mb.o_next.col(j) = data.obs[e].col((long)(t0 + t + 1) * n + i);
+                mb.act.col(j) = data.act[e].col((long)(t0 + t) * n + i);
+            }
+        }
+    }
+}
+
+struct MadiffLoss {
+    double diffusion = 0, inverse = 0, total = 0;
+};
+struct MadiffWorkspace {
+    std::vector<int> k;
+    std::vector<float> keep;
+    Mat eps, x_k, out, d_out, a_hat, d_a;
+};
+
+// The training loss of one batch: total = (L_diffusion + L_inverse) / 2 (as Decision Diffuser).
+// L_diffusion is the mean squared error of the predicted clean window over frames 1..H-1
+// (frame 0 is given clean, as the sampler inpaints it); windows keep their return condition with
+// probability 1 - condition_dropout. L_inverse is the mean squared error of the inverse
+// dynamics' actions on the windows' clean transitions. With `backward`, ADDS the gradients.
+inline MadiffLoss madiff_loss(MadiffModel& m, const NoiseSchedule& schedule, const MadiffBatch& mb, Rng& rng, bool backward,
+                              MadiffWorkspace& ws) {
+    const int B = mb.B, n = mb.n, A = B * n, H = m.config.horizon, O = kMappoObs;
+    ws.k.resize(B);
+    for (int b = 0; b < B; ++b) ws.k[b] = 1 + rng.uniform_int(schedule.K);
+    condition_keep_mask(B, m.config.condition_dropout, rng, ws.keep);
+    ws.eps.resize(O, (long)H * A);
+    for (long j = 0; j < ws.eps.size(); ++j) ws.eps.data()[j] = (float)rng.normal();
+    ws.x_k.resize(O, (long)H * A);
+    for (long a = 0; a < A; ++a) {
+        const double ab = schedule.alpha_bar[ws.k[a / n]];
+        const float sa = (float)std::sqrt(ab), s1a = (float)std::sqrt(1 - ab);
+        ws.x_k.col(a * H) = mb.x0.col(a * H);
+        ws.x_k.middleCols(a * H + 1, H - 1) = sa * mb.x0.middleCols(a * H + 1, H - 1) + s1a * ws.eps.middleCols(a * H + 1, H - 1);
+    }
+    m.denoise(ws.x_k, B, n, ws.k.data(), mb.ret.data(), ws.keep.data(), ws.out);
+    MadiffLoss L;
+    const double count = (double)O * (H - 1) * A;
+    ws.d_out.setZero(O, (long)H * A);
+    for (long a = 0; a < A; ++a)
+        for (int t = 1; t < H; ++t) {
+            const long c = a * H + t;
+            for (int r = 0; r < O; ++r) {
+                const float e = ws.out(r, c) - mb.x0(r, c);
+                L.diffusion += (double)e * e;
+                ws.d_out(r, c) = (float)(e / count);  // d(0.5 * mean e^2)/d out = e / count
+            }
+        }
+    L.diffusion /= count;
+    m.inv.forward(mb.o_t, mb.o_next, ws.a_hat);
+    ws.d_a = ws.a_hat - mb.act;
+    L.inverse = ws.d_a.squaredNorm() / (double)ws.d_a.size();
+    L.total = 0.5 * (L.diffusion + L.inverse);
+    if (!backward) return L;
+    ws.d_a *= 1.0f / (float)ws.d_a.size();  // d(0.5 * mean)/d a_hat = (a_hat - a) / N
+    m.backward(ws.d_out);
+    m.inv.backward(ws.d_a);
+    return L;
+}
+
+// ---------------------------------------------------------------------------------------------
+// MADiff training
+
+struct MadiffTrainConfig {
+    long steps = 3000;             // optimizer steps
+    int batch = 32;                // windows per step (each with n agents)
+    float lr = 3e-4f;
+    float clip = 1.0f;             // global gradient-norm clip
+    float ema_decay = 0.995f;
+    long ema_start = 500;          // the EMA tracks the weights from this step (the file holds raw weights before)
+    float return_quantile = 1.0f;  // sampling target: this quantile of the normalised window returns (1: the best window)
+    long log_every = 50;           // loss CSV rows
+    long checkpoint_every = 500;
+    std::string out;               // model file ("" = no files); + ".train" (resumable), ".csv" (loss curve)
+    bool resume = false;
+    uint64_t seed = 0;
+    int threads = 1;               // OpenMP threads of the layers; the result does not depend on it
+    bool quiet = false;
+    std::function<bool(long step)> keep_going;  // false stops after that step (a checkpoint is written)
+
+    void validate() const {
+        if (steps < 1 || batch < 1 || log_every < 1 || checkpoint_every < 1 || ema_start < 0)
+            throw std::invalid_argument("madiff: steps, batch, log_every and checkpoint_every must be >= 1, ema_start >= 0");
+        if (!(lr > 0 && lr < 1) || !(clip > 0)) throw std::invalid_argument("madiff: lr must be in (0, 1) and clip > 0");
+        if (!(ema_decay >= 0 && ema_decay < 1)) throw std::invalid_argument("madiff: ema_decay must be in [0, 1)");
+        if (!(return_quantile >= 0 && return_quantile <= 1)) throw std::invalid_argument("madiff: return_quantile must be in [0, 1]");
+        if (resume && out.empty()) throw std::invalid_argument("resume: needs an output file");
+    }
+};
+
+struct MadiffCurveRow {
+    long step = 0;
+    double seconds = 0;
+    MadiffLoss loss;  // smoothed over recent steps
+};
+struct MadiffReport {
+    long steps = 0;
+    double seconds = 0;
+    int episodes = 0;
+    long windows = 0;
+    std::vector<MadiffCurveRow> curve;
+};
+
+// Trains a MADiff model for `model_config.map` and `.agents` on the matching episodes of
+// `demos` (return range and target are set from the data). Writes tc.out (EMA weights),
+// tc.out + ".train" (raw weights, Adam, EMA, RNG: what resume reads) and tc.out + ".csv",
+// atomically, every checkpoint_every steps and at the end. Deterministic for a seed, whatever
+// the thread count. Returns the report; the trained model (EMA weights) in *result if given.
+inline MadiffReport train_madiff(const DemoSet& demos, MadiffConfig mc, const MadiffTrainConfig& tc, MadiffModel* result = nullptr) {
+    tc.validate();
+    {
+        Rng probe(0);
+        make_map(mc.map, probe);  // an unknown map name fails here
+    }
+    mc.validate();
+    set_num_threads(std::max(1, tc.threads));
+    MadiffData data = madiff_data(demos, mc.map, mc.agents, mc.horizon);
+    std::vector<float> sorted = data.window_return;
+    std::sort(sorted.begin(), sorted.end());
+    mc.return_min = sorted.front();
+    mc.return_max = std::max(sorted.back(), sorted.front() + 1e-6f);
+    const float q = sorted[(size_t)std::lround(tc.return_quantile * (sorted.size() - 1))];
+    mc.return_target = (q - mc.return_min) / (mc.return_max - mc.return_min);
+    MadiffModel model(mc, tc.seed);
+    Vec lo = Vec::Constant(kMappoObs, 1e30f), hi = Vec::Constant(kMappoObs, -1e30f);
+    for (const Mat& o : data.obs) lo = lo.cwiseMin(o.rowwise().minCoeff()), hi = hi.cwiseMax(o.rowwise().maxCoeff());
+    model.set_limits(lo, hi);
+    for (Mat& o : data.obs) model.normalize(o);
+    NoiseSchedule schedule(mc.diffusion_steps);
+    Adam adam;
+    adam.lr = tc.lr;
+    Ema ema;
+    ema.decay = tc.ema_decay;
+    Rng rng(tc.seed ^ 0x3ad1ff00ull);
+    long step = 0;
+    double seconds_before = 0;
+    MadiffReport rep;
+    rep.episodes = (int)data.obs.size();
+    rep.windows = (long)data.windows.size();
+    const std::string state_path = tc.out + ".train", csv_path = tc.out + ".csv";
+    const std::map<std::string, std::string> run_identity = {{"madiff.train.seed", std::to_string(tc.seed)},
+        {"madiff.train.steps", std::to_string(tc.steps)}, {"madiff.train.batch", std::to_string(tc.batch)}};
+    if (tc.resume) {
+        SafeTensors st = load_safetensors(state_path);
+        MadiffConfig saved = MadiffConfig::from_metadata(st);
+        if (saved.to_metadata() != mc.to_metadata()) throw std::runtime_error(state_path + ": model config or data differ from this run's");
+        for (auto& kv : run_identity)
+            if (!st.metadata.count(kv.first) || st.metadata.at(kv.first) != kv.second)
+                throw std::runtime_error(state_path + ": was written by a run with another " + kv.first);
+        read_param_tensors(st, *model.params);
+        read_adam(st, model.params->size(), adam);
+        read_ema(st, model.params->size(), ema);
+        read_rng(st, "madiff.rng", rng);
+        step = adam.step;
+        seconds_before = std::atof(st.meta("madiff.seconds").c_str());
+        std::ifstream csv(csv_path);
+        std::string line;
+        std::getline(csv, line);
+        while (std::getline(csv, line)) {
+            MadiffCurveRow r;
+            if (std::sscanf(line.c_str(), "%ld,%lf,%lf,%lf,%lf", &r.step, &r.seconds, &r.loss.total, &r.loss.diffusion,
+                            &r.loss.inverse) == 5 && r.step <= step)
+                rep.curve.push_back(r);
+        }
+    }
+    if (ema.shadow.size() != model.params->size()) ema.shadow = model.params->value;
+    const auto t_start = std::chrono::steady_clock::now();
+    auto elapsed = [&] { return seconds_before + std::chrono::duration<double>(std::chrono::steady_clock::now() - t_start).count(); };
+    auto save_state = [&] {
+        if (tc.out.empty()) return;
+        char secs[32];
+        std::snprintf(secs, sizeof secs, "%.3f", elapsed());
+        const std::map<std::string, std::string> info = {{"demonstrator", demos.demonstrator}, {"train.step", std::to_string(step)},
+            {"madiff.seconds", secs}, {"madiff.episodes", std::to_string(rep.episodes)}, {"madiff.windows", std::to_string(rep.windows)}};
+        Vec raw = model.params->value;
+        if (step >= tc.ema_start) ema.copy_to(*model.params);
+        save_madiff(tc.out, model, info);
+        model.params->value = raw;
+        std::vector<NamedTensor> tensors = param_tensors(*model.params);
+        auto md = mc.to_metadata();
+        for (auto& kv : info) md[kv.first] = kv.second;
+        for (auto& kv : run_identity) md[kv.first] = kv.second;
+        append_adam(adam, tensors, md);
+        append_ema(ema, tensors, md);
+        append_rng(rng, "madiff.rng", md);
+        save_safetensors(state_path, tensors, md);
+        std::string csv = "step,seconds,loss,diffusion,inverse\n";
+        for (const MadiffCurveRow& r : rep.curve) {
+            char buf[160];
+            std::snprintf(buf, sizeof buf, "%ld,%.3f,%.6g,%.6g,%.6g\n", r.step, r.seconds, r.loss.total, r.loss.diffusion, r.loss.inverse);
+            csv += buf;
+        }
+        write_file_atomic(csv_path, std::vector<uint8_t>(csv.begin(), csv.end()));
+    };
+    model.set_training(true);
+    MadiffBatch mb;
+    MadiffWorkspace ws;
+    MadiffLoss smooth;
+    ProgressLine progress("madiff " + mc.map + " n=" + std::to_string(mc.agents), tc.steps, tc.quiet);
+    progress.done = step;
+    while (step < tc.steps) {
+        make_madiff_batch(data, model.config, tc.batch, rng, mb);
+        model.params->zero_grad();
+        const MadiffLoss l = madiff_loss(model, schedule, mb, rng, true, ws);
+        if (!std::isfinite(l.total)) throw std::runtime_error("madiff: loss became non-finite at step " + std::to_string(step));
+        clip_grad_norm(*model.params, tc.clip);
+        adam.update(*model.params);
+        ++step;
+        if (step == tc.ema_start) ema.shadow = model.params->value;
+        else if (step > tc.ema_start) ema.update(*model.params);
+        const double keep = step == 1 ? 0.0 : 0.98;
+        smooth.total = keep * smooth.total + (1 - keep) * l.total;
+        smooth.diffusion = keep * smooth.diffusion + (1 - keep) * l.diffusion;
+        smooth.inverse = keep * smooth.inverse + (1 - keep) * l.inverse;
+        if (step % tc.log_every == 0 || step == tc.steps) rep.curve.push_back({step, elapsed(), smooth});
+        const bool stop = tc.keep_going && !tc.keep_going(step);
+        if (step % tc.checkpoint_every == 0 || step == tc.steps || stop) save_state();
+        char extra[96];
+        std::snprintf(extra, sizeof extra, "loss %.4f (diffusion %.4f, inverse %.4f)", smooth.total, smooth.diffusion, smooth.inverse);
+        progress.tick(1, extra);
+        if (stop) break;
+    }
+    rep.steps = step;
+    rep.seconds = elapsed();
+    if (step >= tc.ema_start) ema.copy_to(*model.params);
+    model.set_training(false);
+    if (result) *result = std::move(model);
+    return rep;
+}
+
+// ---------------------------------------------------------------------------------------------
+// Running a MADiff model (SPEC 3.4, 9)
+
+// At every step: the team's normalised observations; a window of H observations per agent
+// drawn with DDIM in S steps from N(0, I), frame 0 inpainted with the current observation
+// after every step, the noise estimate guided by eps_u + w (eps_c - eps_u) towards the return
+// target; then a_i = inverse dynamics (o_0, o_1) of agent i, clamped to the action box. Raw
+// actions, no safety filter. The team must have exactly the model's n agents
+// (std::invalid_argument otherwise). Seeded: the same seed and world give the same actions.
+// plan_ms() is the mean wall time of one act().
+class MadiffPolicy : public Policy {
+public:
+    int sample_steps;       // S, in [1, K]
+    float guidance;         // w
+    float return_target;    // normalised return to condition on
+
+    explicit MadiffPolicy(MadiffModel model, uint64_t seed = 0)
+        : sample_steps(model.config.sample_steps), guidance(model.config.guidance), return_target(model.config.return_target),
+          model_(std::move(model)), schedule_(model_.config.diffusion_steps), rng_(seed) {
+        model_.set_training(false);
+    }
+    const MadiffConfig& config() const { return model_.config; }
+    void reseed(uint64_t seed) { rng_.reseed(seed); }
+
+    std::vector<Vec2> act(const World& world) override {
+        const auto t0 = std::chrono::steady_clock::now();
+        const MadiffConfig& c = model_.config;
+        const int n = c.agents, H = c.horizon, O = kMappoObs, S = sample_steps;
+        if (world.size() != n)
+            throw std::invalid_argument("madiff: the model was trained for " + std::to_string(n) + " agents, the world has " +
+                                        std::to_string(world.size()) + " (MADiff is built for a fixed team size)");
+        if (S < 1 || S > schedule_.K)
+            throw std::invalid_argument("sample_steps: " + std::to_string(S) + " must be in [1, " + std::to_string(schedule_.K) + "]");
+        for (const Agent& a : world.agents())
+            if (!std::isfinite(a.pos.x + a.pos.y + a.vel.x + a.vel.y + a.goal.x + a.goal.y))
+                throw std::invalid_argument("madiff: agent " + std::to_string(a.id) + " has a non-finite state or goal");
+        obs_.resize(O, n);
+        mappo_observe_all(world, obs_, 0);
+        model_.normalize(obs_);
+        x_.resize(O, (long)H * n);
+        for (long j = 0; j < x_.size(); ++j) x_.data()[j] = (float)rng_.normal();
+        auto inpaint = [&] { for (int i = 0; i < n; ++i) x_.col((long)i * H) = obs_.col(i); };
+        inpaint();
+        // One denoiser call evaluates both branches: scenes 0 (conditioned) and 1 (unconditional).
+        const float ret[2] = {return_target, return_target}, keep[2] = {1, 0};
+        int k2[2];
+        xx_.resize(O, 2L * H * n);
+        for (int s = S; s >= 1; --s) {
+            const int k = schedule_.ddim_step(s, S), k_prev = schedule_.ddim_step(s - 1, S);
+            k2[0] = k2[1] = k;
+            xx_.leftCols((long)H * n) = x_;
+            xx_.rightCols((long)H * n) = x_;
+            model_.denoise(xx_, 2, n, k2, ret, keep, out_);
+            const double ab = schedule_.alpha_bar[k], ab_prev = schedule_.alpha_bar[k_prev];
+            const float sa = (float)std::sqrt(ab), s1a = (float)std::sqrt(1 - ab);
+            const float sap = (float)std::sqrt(ab_prev), s1ap = (float)std::sqrt(1 - ab_prev);
+            // The noise each branch's x0 implies, then guidance (the formula on eps).
+            eps_c_ = (x_ - sa * out_.leftCols((long)H * n)) / s1a;
+            eps_u_ = (x_ - sa * out_.rightCols((long)H * n)) / s1a;
+            classifier_free_guidance(eps_c_, eps_u_, guidance, eps_);
+            for (long j = 0; j < x_.size(); ++j) {  // DDIM (eta = 0) with x0_hat clipped, as sample_windows
+                const float x0 = std::clamp(predict_x0(x_.data()[j], eps_.data()[j], ab), -c.clip, c.clip);
+                const float e = (x_.data()[j] - sa * x0) / s1a;
+                x_.data()[j] = sap * x0 + s1ap * e;
+            }
+            inpaint();
+        }
+        o_next_.resize(O, n);
+        for (int i = 0; i < n; ++i) o_next_.col(i) = x_.col((long)i * H + 1);
+        model_.inv.forward(obs_, o_next_, a_);
+        std::vector<Vec2> u(n);
+        for (int i = 0; i < n; ++i) u[i] = clamp_box(Vec2{a_(0, i), a_(1, i)}, world.config().max_action);
+        total_ms_ += std::chrono::duration<double, std::milli>(std::chrono::steady_clock::now() - t0).count();
+        ++calls_;
+        return u;
+    }
+    double plan_ms() const override { return calls_ ? total_ms_ / calls_ : 0; }
+    // The window sampled by the last act(): (O, H*n), column i*H + t, normalised observations.
+    const Mat& last_window() const { return x_; }
+
+private:
+    MadiffModel model_;
+    NoiseSchedule schedule_;
+    Rng rng_;
+    Mat obs_, x_, xx_, out_, eps_c_, eps_u_, eps_, o_next_, a_;
+    double total_ms_ = 0;
+    long calls_ = 0;
+};
+
+}  // namespace madbp
 
 #endif  // MADBP_TRAIN_HPP
