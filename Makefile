@@ -11,6 +11,9 @@ CXXFLAGS_TEST := -std=c++17 -O2 -march=native -fopenmp -g $(WARN) $(INCLUDES)
 CXXFLAGS_SAN  := -std=c++17 -O1 -g -fopenmp -fsanitize=address,undefined -fno-omit-frame-pointer $(WARN) $(INCLUDES)
 
 BUILD        ?= build
+# OpenMP threads sleep instead of spinning while they wait: on a busy 2-core machine spinning
+# made 2-thread training up to 20x slower (README "Threads"). Override in the environment.
+export OMP_WAIT_POLICY ?= passive
 HEADERS      := $(wildcard madbp*.hpp) $(wildcard examples/*.hpp)
 TEST_SRCS    ?= $(wildcard tests/test_*.cpp)
 TEST_OBJS    := $(patsubst tests/%.cpp,$(BUILD)/tests/%.o,$(TEST_SRCS))
@@ -18,7 +21,7 @@ SAN_OBJS     := $(patsubst tests/%.cpp,$(BUILD)/san/%.o,$(TEST_SRCS))
 EXAMPLE_SRCS := $(filter-out examples/madbp.cpp,$(wildcard examples/*.cpp))
 EXAMPLES     := $(patsubst examples/%.cpp,$(BUILD)/%,$(EXAMPLE_SRCS))
 
-.PHONY: all deps test test-sanitize demo bench fuzz model mappo-models clean
+.PHONY: all deps test test-sanitize demo bench fuzz model mappo-models madiff-models paper-models results clean
 all: deps $(BUILD)/madbp $(EXAMPLES)
 
 # Install Eigen and doctest through apt when their headers are missing.
@@ -92,6 +95,49 @@ mappo-models: $(BUILD)/madbp
 	@set -e; for cell in $(MAPPO_CELLS); do IFS=: read map n it <<< "$$cell"; \
 	  $(BUILD)/madbp mappo --map $$map --agents $$n --iterations $$it --threads 2 \
 	    --out models/mappo/$$map-$$n.safetensors; done
+
+# Every table and figure of the paper plus ours (README "Evaluation suite"): results/*.md, *.csv,
+# *.svg; resumable (rerun to continue), shardable with SUITE_FLAGS='--shard i/N'.
+results: $(BUILD)/madbp
+	$(BUILD)/madbp eval --suite paper --threads 2 $(SUITE_FLAGS)
+
+# MADiff baselines (SPEC 3.4; README "MADiff"): expert demonstrations, then one model per
+# map:n:steps on one thread (each <= 3 min on the 2-core machine).
+MADIFF_CELLS := empty:2:10000 empty:4:8000 empty:6:7000 obstacles:2:10000 obstacles:3:8000 obstacles:4:8000 \
+                barrier:2:10000 barrier:3:8000 barrier:4:8000
+madiff-models: $(BUILD)/madbp
+	@mkdir -p models/madiff
+	$(BUILD)/madbp collect --maps empty --n-train-max 6 --episodes 300 --seed 0 --threads 1 --out $(BUILD)/demos-madiff-empty.bin
+	$(BUILD)/madbp collect --maps obstacles,barrier --n-train-max 4 --episodes 300 --seed 0 --threads 1 --out $(BUILD)/demos-madiff-ob.bin
+	@set -e; for cell in $(MADIFF_CELLS); do IFS=: read map n steps <<< "$$cell"; \
+	  data=$(BUILD)/demos-madiff-ob.bin; [ $$map = empty ] && data=$(BUILD)/demos-madiff-empty.bin; \
+	  $(BUILD)/madbp madiff --map $$map --agents $$n --steps $$steps --threads 1 --seed 0 --data $$data \
+	    --out models/madiff/$$map-$$n.safetensors; \
+	  rm -f models/madiff/$$map-$$n.safetensors.train; done
+
+# The models of the paper's figures (README "Results"; `madbp eval --suite paper` reads them):
+# Fig. 4 upscaling models trained on 1..k robots of all three maps (k = 4 is the default model),
+# and the ablations of Table II and the horizon sweep on the empty map (as the paper does).
+# Shorter training than the default model's 20,000 steps, to fit a 2-core session (~1 h).
+PAPER_FIG4_STEPS     ?= 6000
+PAPER_ABLATION_STEPS ?= 2000
+PAPER_TRAIN          := --batch 64 --threads 2 --seed 0
+paper-models: all
+	@mkdir -p models/paper
+	@[ -f $(BUILD)/demos.bin ] || $(BUILD)/madbp collect --episodes 500 --threads 2 --seed 0 --out $(BUILD)/demos.bin
+	@[ -f $(BUILD)/demos-empty.bin ] || $(BUILD)/madbp collect --maps empty --episodes 500 --threads 2 --seed 0 --out $(BUILD)/demos-empty.bin
+	@set -e; for k in 2 3; do \
+	  $(BUILD)/madbp train --data $(BUILD)/demos.bin --n-train-max $$k --steps $(PAPER_FIG4_STEPS) $(PAPER_TRAIN) \
+	    --out models/paper/madbp-n$$k.safetensors; done
+	@set -e; for cfg in MW:AAP:16:64 MW:LE:16:64 CT:AAP:104:16 CT:LE:104:16; do IFS=: read win proc h batch <<< "$$cfg"; \
+	  for k in 2 3 4; do \
+	    $(BUILD)/madbp train --data $(BUILD)/demos-empty.bin --n-train-max $$k --steps $(PAPER_ABLATION_STEPS) $(PAPER_TRAIN) \
+	      --window $$win --processor $$proc --horizon $$h --batch $$batch --out models/paper/ablation-$$win-$$proc-n$$k.safetensors; \
+	  done; done
+	@set -e; for h in 8 32; do \
+	  $(BUILD)/madbp train --data $(BUILD)/demos-empty.bin --n-train-max 4 --steps $(PAPER_ABLATION_STEPS) $(PAPER_TRAIN) \
+	    --horizon $$h --out models/paper/ablation-MW-AAP-n4-h$$h.safetensors; done
+	rm -f models/paper/*.train
 
 clean:
 	rm -rf $(BUILD)

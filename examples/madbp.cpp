@@ -17,6 +17,7 @@
 #include "madbp_sim.hpp"
 
 #include "methods.hpp"
+#include "suite.hpp"  // eval --suite paper: every table and figure (README "Evaluation suite")
 #include "alloc_counter.hpp"  // heap-allocation counters for bench --plan (this program's only copy)
 #include "bench_plan.hpp"
 #if __has_include("bench_nn.hpp")
@@ -37,6 +38,7 @@ std::string fixed(double v, int prec) {
 
 // ---------------------------------------------------------------------------------------------
 int cmd_eval(Args& a) {
+    if (a.has("--suite")) return cmd_suite(a);
     if (a.flag("--help")) {
         std::printf(
             "madbp eval - success, collisions and steps of a method over seeded episodes (SPEC 10)\n"
@@ -53,6 +55,7 @@ int cmd_eval(Args& a) {
             "  --half-size H     half-size of random worlds (default 1.2; 2.4 = twice the side)\n"
             "  --max-steps N     episode step limit (default 100)\n"
             "  --json            one JSON object per cell instead of the table\n"
+            "  --suite paper     every table and figure of the paper plus ours (--suite paper --help)\n"
             "Columns: method, map, n_train, n, episodes, success, success_se, collisions (per\n"
             "episode), steps (mean of successful episodes), plan_ms (mean per plan).\n",
             method_list().c_str());
@@ -289,6 +292,9 @@ const std::vector<Subcommand>& subcommands() {
         {"collect", "record demonstrations for training", cmd_collect},
         {"train", "train the MA-DBP model", cmd_train},
         {"mappo", "train a MAPPO policy for one map and team size (SPEC 3.3)", cmd_mappo},
+#endif
+#ifdef MADBP_HAVE_MADIFF
+        {"madiff", "train a MADiff baseline for one map and team size (SPEC 3.4)", cmd_madiff},
 #endif
     };
     return s;
