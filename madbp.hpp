@@ -272,6 +272,11 @@ struct ParamStore {
     Eigen::Map<Vec> grad_vec(int offset, int n) { return {grad.data() + offset, n}; }
     void zero_grad() { grad.setZero(); }
     int size() const { return (int)value.size(); }
+    long trainable_count() const {  // parameters, without state such as running statistics
+        long n = 0;
+        for (auto& e : entries) if (e.trainable) n += e.numel();
+        return n;
+    }
 };
 
 // ---------------------------------------------------------------------------------------------
@@ -1867,11 +1872,7 @@ public:
         m.set_training(training_);
         return m;
     }
-    long parameter_count() const {
-        long n = 0;
-        for (auto& e : params->entries) if (e.trainable) n += e.numel();
-        return n;
-    }
+    long parameter_count() const { return params->trainable_count(); }
     // Training mode: BatchNorm uses (masked) batch statistics and updates its running ones.
     void set_training(bool on) {
         training_ = on;

@@ -1846,11 +1846,7 @@ public:
         m.set_training(training_);
         return m;
     }
-    long parameter_count() const {
-        long k = 0;
-        for (auto& e : params->entries) if (e.trainable) k += e.numel();
-        return k;
-    }
+    long parameter_count() const { return params->trainable_count(); }
     void set_training(bool on) {
         training_ = on;
         for (auto& b : net_.down) b.set_training(on);
