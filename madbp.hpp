@@ -2430,7 +2430,7 @@ public:
         const int scenes = local ? n : 1, per_scene = local ? neighbours : n;
         if (per_scene > c.n_max)
             throw std::invalid_argument("planner: " + std::to_string(per_scene) + " agents per scene exceed the model's n_max = " +
-                                        std::to_string(c.n_max) + (local ? "" : " (neighbourhood planning, neighbours <= n_max, plans larger teams)"));
+                                        std::to_string(c.n_max) + (local ? "" : "; larger teams need neighbourhood planning (neighbours = K <= n_max, --neighbours K)"));
         if (batch_.B != scenes || batch_.n != per_scene) {  // a team of another size: new buffers, grid redrawn
             batch_.resize(scenes, per_scene, c, /*shared grid*/ true);
             grid_valid_ = false;
