@@ -288,14 +288,10 @@ const std::vector<Subcommand>& subcommands() {
         {"eval", "success / collisions / steps of a method over seeded episodes", cmd_eval},
         {"render", "one episode drawn as (animated) SVG", cmd_render},
         {"bench", "world stepping speed (and --nn kernels when built in)", cmd_bench},
-#ifdef MADBP_HAVE_NN_METHODS
         {"collect", "record demonstrations for training", cmd_collect},
         {"train", "train the MA-DBP model", cmd_train},
         {"mappo", "train a MAPPO policy for one map and team size (SPEC 3.3)", cmd_mappo},
-#endif
-#ifdef MADBP_HAVE_MADIFF
         {"madiff", "train a MADiff baseline for one map and team size (SPEC 3.4)", cmd_madiff},
-#endif
     };
     return s;
 }
@@ -321,8 +317,6 @@ int main(int argc, char** argv) {
             Args args(argc, argv, 2);
             return s.run(args);
         }
-        for (const char* later : {"collect", "train", "mappo"})
-            if (name == later) throw std::invalid_argument(name + ": not available in this build yet");
         throw std::invalid_argument("unknown subcommand '" + name + "' (try madbp --help)");
     } catch (const std::exception& e) {  // bad flags, files, maps: one line, exit code 2
         std::fprintf(stderr, "madbp %s: %s\n", name.c_str(), e.what());

@@ -19,6 +19,9 @@ struct MethodSetup {
     bool filter = true;   // --no-filter turns the safety filter off
     int replan = 8;       // --replan M: steps executed per plan
 };
+// The shipped MA-DBP model: the default of --model wherever a method or bench plans with MA-DBP.
+inline const char* kDefaultModel = "models/madbp-default.safetensors";
+
 // What a method gives eval: the per-episode policy and the training team size it reports.
 struct MethodSpec {
     madbp::PolicyFactory factory;
@@ -31,12 +34,8 @@ struct Method {
 
 }  // namespace madbp_cli
 
-#include "methods_nn.hpp"
-#define MADBP_HAVE_NN_METHODS 1
-#if __has_include("methods_madiff.hpp")
 #include "methods_madiff.hpp"
-#define MADBP_HAVE_MADIFF 1
-#endif
+#include "methods_nn.hpp"
 
 namespace madbp_cli {
 
@@ -87,17 +86,7 @@ inline std::vector<Method> methods() {
                  }});
     register_nn_methods(m);
     register_mappo_methods(m);
-#ifdef MADBP_HAVE_MADIFF
     register_madiff_methods(m);
-#endif
-    for (const char* later : {"madbp", "mappo", "madiff"}) {
-        bool present = false;
-        for (auto& x : m) present = present || x.name == later;
-        if (!present)
-            m.push_back({later, "(not available in this build yet)", [later](Args&, const MethodSetup&) -> MethodSpec {
-                             throw std::invalid_argument(std::string("--method ") + later + ": not available in this build yet");
-                         }});
-    }
     return m;
 }
 

@@ -9,7 +9,6 @@
 
 namespace madbp_cli {
 
-inline const char* kDefaultModel = "models/madbp-default.safetensors";
 
 // Options of the diffusion planner, shared by eval, render and demo.
 struct PlannerOptions {

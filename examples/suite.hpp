@@ -355,7 +355,6 @@ struct SuiteCell {
     std::string id, group;
     int unit = 0;                      // shard unit (see the file comment)
     std::vector<std::string> needs;    // model files; a missing one makes the cell "missing"
-    std::string not_built;             // non-empty: this build cannot run the cell (e.g. madiff)
     std::string output;                // a file the cell writes: done only while it exists
     SuiteRecord base;
     std::function<std::vector<SuiteRecord>(SuiteRecord&)> run;
@@ -435,9 +434,6 @@ inline SuiteCell eval_cell(const SuiteConfig& cfg, const std::string& id, const 
     }
     if (e.half_size != 1.2) c.base.set("half_size", e.half_size);
     if (e.max_steps != 100) c.base.set("max_steps", e.max_steps);
-#ifndef MADBP_HAVE_MADIFF
-    if (method == "madiff") c.not_built = "madiff not built";
-#endif
     c.run = [&cfg, method, e, model](SuiteRecord& r) {
         int replan = 0;
         MethodSpec spec = registry_method(method, model.empty() ? std::vector<std::string>{} : std::vector<std::string>{"--model", model},
@@ -843,10 +839,7 @@ inline std::vector<SuiteRecord> run_suite_cell(const SuiteCell& c) {
     std::string missing;
     for (const std::string& f : c.needs)
         if (missing.empty() && !file_exists(f)) missing = f;
-    if (!c.not_built.empty()) {
-        own.status = "missing";
-        own.set("why", c.not_built);
-    } else if (!missing.empty()) {
+    if (!missing.empty()) {
         own.status = "missing";
         own.set("why", "missing " + missing);
     } else {

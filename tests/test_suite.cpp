@@ -250,11 +250,7 @@ TEST_CASE("suite: a whole shrunken suite runs, writes every report, resumes, ret
     CHECK(count_lines(table1, "| empty | 2 |") == 1);
     CHECK(count_lines(table1, "| barrier* | 2 |") == 1);
     CHECK(table1.find("n/a (missing " + models + "/mappo/barrier-2.safetensors)") != std::string::npos);
-#ifdef MADBP_HAVE_MADIFF
     CHECK(table1.find("n/a (missing " + models + "/madiff/empty-2.safetensors)") != std::string::npos);
-#else
-    CHECK(table1.find("n/a (madiff not built)") != std::string::npos);
-#endif
     CHECK(table1.find(".96 ± .024") != std::string::npos);  // the paper's MAPPO, empty n = 2
     CHECK(count_lines(read_text(out + "/table2.md"), "| CT+LE | 2 |") == 1);
     CHECK(count_lines(read_text(out + "/horizon.md"), "| 8 | 2 | 8 | 4 |") == 1);  // the file's H = 8: replan 4
