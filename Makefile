@@ -3,26 +3,31 @@ SHELL    := /bin/bash
 CXX      ?= g++
 SUDO     := $(shell [ "$$(id -u)" -eq 0 ] || echo sudo)
 EIGEN    := /usr/include/eigen3
-INCLUDES := -I. -Iexamples -isystem $(EIGEN)
+INCLUDES := -I. -Itool -Itests -isystem $(EIGEN)
 WARN     := -Wall -Wextra -Wno-unused-parameter
-# The tool and benchmarks build with -O3 -march=native (SPEC 9); tests with -O2.
-CXXFLAGS_FAST := -std=c++17 -O3 -march=native -fopenmp -DNDEBUG $(WARN) $(INCLUDES)
-CXXFLAGS_TEST := -std=c++17 -O2 -march=native -fopenmp -g $(WARN) $(INCLUDES)
-CXXFLAGS_SAN  := -std=c++17 -O1 -g -fopenmp -fsanitize=address,undefined -fno-omit-frame-pointer $(WARN) $(INCLUDES)
+# The tool and benchmarks build with -O3 (SPEC 9); tests with -O2. ARCH is the target-CPU flag
+# (empty for a portable or cross build). -MMD -MP: each object tracks the headers it includes.
+ARCH     ?= -march=native
+DEPFLAGS := -MMD -MP
+CXXFLAGS_FAST := -std=c++17 -O3 $(ARCH) -fopenmp -DNDEBUG $(WARN) $(INCLUDES) $(DEPFLAGS)
+CXXFLAGS_TEST := -std=c++17 -O2 $(ARCH) -fopenmp -g $(WARN) $(INCLUDES) $(DEPFLAGS)
+CXXFLAGS_SAN  := -std=c++17 -O1 -g -fopenmp -fsanitize=address,undefined -fno-omit-frame-pointer $(WARN) $(INCLUDES) $(DEPFLAGS)
 
 BUILD        ?= build
 # OpenMP threads sleep instead of spinning while they wait: on a busy 2-core machine spinning
 # made 2-thread training up to 20x slower (README "Threads"). Override in the environment.
 export OMP_WAIT_POLICY ?= passive
-HEADERS      := $(wildcard madbp*.hpp) $(wildcard examples/*.hpp)
 TEST_SRCS    ?= $(wildcard tests/test_*.cpp)
 TEST_OBJS    := $(patsubst tests/%.cpp,$(BUILD)/tests/%.o,$(TEST_SRCS))
 SAN_OBJS     := $(patsubst tests/%.cpp,$(BUILD)/san/%.o,$(TEST_SRCS))
-EXAMPLE_SRCS := $(filter-out examples/madbp.cpp,$(wildcard examples/*.cpp))
+EXAMPLE_SRCS := $(wildcard examples/*.cpp)
 EXAMPLES     := $(patsubst examples/%.cpp,$(BUILD)/%,$(EXAMPLE_SRCS))
+# The madbp tool (tool/: CLI, method registry, evaluation suite, benchmarks) and the allocation
+# benchmark, which replaces malloc and so is a program of its own.
+TOOLS        := $(BUILD)/madbp $(BUILD)/bench_alloc
 
 .PHONY: all deps test test-sanitize demo bench fuzz model mappo-models madiff-models paper-models results clean
-all: deps $(BUILD)/madbp $(EXAMPLES)
+all: deps $(TOOLS) $(EXAMPLES)
 
 # Install Eigen and doctest through apt when their headers are missing.
 deps:
@@ -31,22 +36,22 @@ deps:
 	  $(SUDO) apt-get update -qq && $(SUDO) apt-get install -y -qq libeigen3-dev doctest-dev; \
 	fi
 
-$(BUILD)/madbp: examples/madbp.cpp $(HEADERS) | deps
-	@mkdir -p $(BUILD)
-	$(CXX) $(CXXFLAGS_FAST) -o $@ $< 
-
-$(BUILD)/%: examples/%.cpp $(HEADERS) | deps
+$(BUILD)/%: tool/%.cpp | deps
 	@mkdir -p $(BUILD)
 	$(CXX) $(CXXFLAGS_FAST) -o $@ $<
 
-$(BUILD)/tests/%.o: tests/%.cpp $(HEADERS) | deps
+$(BUILD)/%: examples/%.cpp | deps
+	@mkdir -p $(BUILD)
+	$(CXX) $(CXXFLAGS_FAST) -o $@ $<
+
+$(BUILD)/tests/%.o: tests/%.cpp | deps
 	@mkdir -p $(BUILD)/tests
 	$(CXX) $(CXXFLAGS_TEST) -c -o $@ $<
 
 $(BUILD)/run_tests: $(BUILD)/tests/main.o $(TEST_OBJS)
 	$(CXX) $(CXXFLAGS_TEST) -o $@ $^
 
-$(BUILD)/san/%.o: tests/%.cpp $(HEADERS) | deps
+$(BUILD)/san/%.o: tests/%.cpp | deps
 	@mkdir -p $(BUILD)/san
 	$(CXX) $(CXXFLAGS_SAN) -c -o $@ $<
 
@@ -71,6 +76,7 @@ bench: all
 	$(BUILD)/madbp bench
 	$(BUILD)/madbp bench --nn
 	$(BUILD)/madbp bench --plan
+	$(BUILD)/bench_alloc
 
 # The shipped default model, reproducibly: expert demonstrations (3 maps, 1-4 robots, 500
 # episodes each), then 20,000 steps of training on 2 data-parallel replicas (~17 min on 2 cores).
@@ -141,3 +147,5 @@ paper-models: all
 
 clean:
 	rm -rf $(BUILD)
+
+-include $(wildcard $(BUILD)/*.d $(BUILD)/tests/*.d $(BUILD)/san/*.d)

@@ -1,4 +1,4 @@
-// The evaluation suite (`madbp eval --suite paper`, examples/suite.hpp): cells, store, resume,
+// The evaluation suite (`madbp eval --suite paper`, tool/suite.hpp): cells, store, resume,
 // shards, missing models and reports, on a shrunken suite with tiny models built here.
 #include <doctest/doctest.h>
 

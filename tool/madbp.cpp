@@ -18,12 +18,8 @@
 
 #include "methods.hpp"
 #include "suite.hpp"  // eval --suite paper: every table and figure (README "Evaluation suite")
-#include "alloc_counter.hpp"  // heap-allocation counters for bench --plan (this program's only copy)
-#include "bench_plan.hpp"
-#if __has_include("bench_nn.hpp")
 #include "bench_nn.hpp"
-#define MADBP_HAVE_BENCH_NN 1
-#endif
+#include "bench_plan.hpp"
 
 using namespace madbp_cli;
 
@@ -229,21 +225,15 @@ int cmd_bench(Args& a) {
             "  --steps N      steps timed (default 200)\n"
             "  --threads LIST thread counts, e.g. 1,2 (default 1,2)\n"
             "  --seed S       seed of the worlds and actions (default 0)\n"
-            "  --nn           benchmark the neural-network kernels instead (when built in)\n"
-            "  --plan         benchmark the diffusion planner instead: ms per plan, GFLOP/s against\n"
-            "                 Eigen's GEMM, allocations per plan; with --agents LIST (default\n"
+            "  --nn           benchmark the neural-network kernels instead\n"
+            "  --plan         benchmark the diffusion planner instead: ms per plan and GFLOP/s against\n"
+            "                 Eigen's GEMM (allocations: build/bench_alloc); with --agents LIST (default\n"
             "                 1,2,4,8,16,32), --plans N, --sample-steps S, --model FILE\n"
             "  --json         one JSON object per thread count\n");
         return 0;
     }
     if (a.flag("--plan")) return bench_plan(a);
-    if (a.flag("--nn")) {
-#ifdef MADBP_HAVE_BENCH_NN
-        return bench_nn(a);
-#else
-        throw std::invalid_argument("--nn: not available in this build yet");
-#endif
-    }
+    if (a.flag("--nn")) return bench_nn(a);
     int worlds = (int)a.integer("--worlds", 1000, 1, 1000000);
     int agents = (int)a.integer("--agents", 4, 1, 64);
     int steps = (int)a.integer("--steps", 200, 1, 1000000);
@@ -287,7 +277,7 @@ const std::vector<Subcommand>& subcommands() {
         {"demo", "a planning episode on the barrier map, written as SVG", cmd_demo},
         {"eval", "success / collisions / steps of a method over seeded episodes", cmd_eval},
         {"render", "one episode drawn as (animated) SVG", cmd_render},
-        {"bench", "world stepping speed (and --nn kernels when built in)", cmd_bench},
+        {"bench", "world stepping speed (--nn kernels, --plan planner)", cmd_bench},
         {"collect", "record demonstrations for training", cmd_collect},
         {"train", "train the MA-DBP model", cmd_train},
         {"mappo", "train a MAPPO policy for one map and team size (SPEC 3.3)", cmd_mappo},

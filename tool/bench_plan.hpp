@@ -1,11 +1,10 @@
-// bench_plan.hpp - `madbp bench --plan`: wall time per window plan against team size, the
-// sampler's arithmetic rate as a share of the same run's Eigen matrix-product rate, and heap
-// allocations per plan (SPEC 9 speed targets). Included by madbp.cpp, which also includes
-// alloc_counter.hpp (the counters g_count_allocs / g_allocs).
+// bench_plan.hpp - `madbp bench --plan`: wall time per window plan against team size and the
+// sampler's arithmetic rate as a share of the same run's Eigen matrix-product rate (SPEC 9 speed
+// targets). Heap allocations per plan are counted by build/bench_alloc (tool/bench_alloc.cpp),
+// which replaces malloc: the shipped tool does not.
 #pragma once
 #include <chrono>
 
-#include "alloc_counter_api.hpp"
 #include "madbp.hpp"
 
 namespace madbp_cli {
@@ -74,10 +73,10 @@ inline int bench_plan(Args& a) {
     const double gemm = eigen_gemm_rate(config.channels[0], config.dim * config.kernel, config.horizon * 8);
     if (!json)
         std::printf("plan bench: %s, S = %d, one thread; Eigen GEMM %dx%d * %dx%d: %.1f GFLOP/s\n"
-                    "%4s %10s %10s %8s %12s\n",
+                    "%4s %10s %10s %8s\n",
                     model_path.empty() ? "default config (random weights: time does not depend on them)" : model_path.c_str(), S,
                     config.channels[0], config.dim * config.kernel, config.dim * config.kernel, config.horizon * 8, gemm, "n",
-                    "ms/plan", "GFLOP/s", "of GEMM", "allocs/plan");
+                    "ms/plan", "GFLOP/s", "of GEMM");
     for (long n : teams) {
         if (n > config.n_max) throw std::invalid_argument("--agents: " + std::to_string(n) + " exceeds the model's n_max " + std::to_string(config.n_max));
         madbp::MadbpModel model = model_path.empty() ? madbp::MadbpModel(config, seed) : madbp::load_model(model_path);
@@ -87,20 +86,15 @@ inline int bench_plan(Args& a) {
         madbp::World world = madbp::make_random_world("empty", (int)n, seed, n > 16 ? 2.4 : 1.2);
         madbp::Plan plan;
         for (int i = 0; i < 3; ++i) planner.plan_into(world, plan);  // warm-up: workspaces take their sizes
-        g_allocs = 0;
-        g_count_allocs = true;
         auto t0 = std::chrono::steady_clock::now();
         for (int i = 0; i < plans; ++i) planner.plan_into(world, plan);
         const double secs = std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count();
-        g_count_allocs = false;
         const double ms = 1000 * secs / plans, rate = plan_flops(config, (int)n, S) / (secs / plans) / 1e9;
-        const double allocs = MADBP_TEST_COUNT_ALLOCS ? (double)g_allocs.load() / plans : std::nan("");
         if (json)
             std::printf("%s\n", Json().add("bench", "plan").add("agents", n).add("sample_steps", S).add("ms_per_plan", ms)
-                                    .add("gflops", rate).add("gemm_gflops", gemm).add("share_of_gemm", rate / gemm)
-                                    .add("allocs_per_plan", allocs).line().c_str());
+                                    .add("gflops", rate).add("gemm_gflops", gemm).add("share_of_gemm", rate / gemm).line().c_str());
         else
-            std::printf("%4ld %10.3f %10.1f %7.0f%% %12.1f\n", n, ms, rate, 100 * rate / gemm, allocs);
+            std::printf("%4ld %10.3f %10.1f %7.0f%%\n", n, ms, rate, 100 * rate / gemm);
         std::fflush(stdout);
     }
     return 0;

@@ -1,0 +1,45 @@
+// bench_alloc.cpp - heap allocations per diffusion plan once sizes are steady (SPEC 9: none).
+// A program of its own because it replaces malloc and operator new (tests/alloc_counter.hpp);
+// the shipped tool keeps the system allocator.
+//   build/bench_alloc [--model FILE] [--agents 1,2,4,8,16,32] [--plans N] [--json]
+#include <cstdio>
+
+#include "cli_common.hpp"
+#include "madbp.hpp"
+
+#include "alloc_counter.hpp"  // after the system headers it redeclares
+
+using namespace madbp_cli;
+
+int main(int argc, char** argv) {
+    try {
+        Args a(argc, argv, 1);
+        std::string model_path = a.str("--model", "");
+        std::vector<long> teams = a.integers("--agents", "1,2,4,8,16,32", 1, 1024);
+        int plans = (int)a.integer("--plans", 10, 1, 1000000);
+        bool json = a.flag("--json");
+        a.finish();
+        if (!MADBP_TEST_COUNT_ALLOCS) throw std::runtime_error("built with a sanitizer that owns malloc: nothing can be counted");
+        madbp::set_num_threads(1);
+        if (!json) std::printf("alloc bench: %s\n%4s %12s\n", model_path.empty() ? "default config" : model_path.c_str(), "n", "allocs/plan");
+        for (long n : teams) {
+            madbp::MadbpModel model = model_path.empty() ? madbp::MadbpModel(madbp::ModelConfig{}) : madbp::load_model(model_path);
+            if (n > model.config.n_max) throw std::invalid_argument("--agents: " + std::to_string(n) + " exceeds the model's n_max");
+            madbp::DiffusionPlanner planner(std::move(model));
+            madbp::World world = madbp::make_random_world("empty", (int)n, 0, n > 16 ? 2.4 : 1.2);
+            madbp::Plan plan;
+            for (int i = 0; i < 3; ++i) planner.plan_into(world, plan);  // warm-up: workspaces take their sizes
+            g_allocs = 0;
+            g_count_allocs = true;
+            for (int i = 0; i < plans; ++i) planner.plan_into(world, plan);
+            g_count_allocs = false;
+            const double per_plan = (double)g_allocs.load() / plans;
+            if (json) std::printf("%s\n", Json().add("bench", "alloc").add("agents", n).add("allocs_per_plan", per_plan).line().c_str());
+            else std::printf("%4ld %12.1f\n", n, per_plan);
+        }
+        return 0;
+    } catch (const std::exception& e) {
+        std::fprintf(stderr, "bench_alloc: %s\n", e.what());
+        return 2;
+    }
+}
