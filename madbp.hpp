@@ -222,29 +222,86 @@ struct Init {
     static Init normal(float std) { return {Normal, std}; }
 };
 
-// value (P), grad (P): all parameters of a model in one flat buffer, entries are named views.
+// Limits of a ParamStore and the parameter budget of checkpoint loaders. A store's offsets are
+// int, so it holds at most kMaxStoreValues values; ParamStore::add refuses a tensor beyond that
+// before allocating it (std::invalid_argument naming the tensor). While a ParamBudget is alive
+// on a thread, add() also refuses (std::runtime_error) a tensor that would bring the values
+// added since the budget began above its limit: loaders build a model from a checkpoint's
+// metadata inside a budget of the values the file holds, so a configuration that implies more
+// memory than the file's tensors fails with a message instead of allocating it.
+constexpr long kMaxStoreValues = std::numeric_limits<int>::max();
+namespace detail {
+struct ParamBudgetState {
+    long limit = -1, used = 0;  // limit < 0: no budget
+    std::string source;
+};
+inline ParamBudgetState& param_budget() {
+    thread_local ParamBudgetState state;
+    return state;
+}
+// Counts `shape` against the store's limit (values already at `offset`) and any budget.
+inline long charge_params(const std::string& name, const std::vector<int>& shape, long offset) {
+    long n = 1;
+    bool over = false;
+    for (int d : shape) n = d == 0 ? 0 : n;
+    for (int d : shape)
+        if (n != 0) {
+            if (n > kMaxStoreValues / d) over = true;
+            else n *= d;
+        }
+    if (over || n > kMaxStoreValues - offset)
+        throw std::invalid_argument("tensor '" + name + "': shape " + shape_string(shape) + " would bring the store past its limit kMaxStoreValues = " +
+                                    std::to_string(kMaxStoreValues) + " values");
+    ParamBudgetState& b = param_budget();
+    if (b.limit >= 0 && n > b.limit - b.used)
+        throw std::runtime_error(b.source + ": the architecture its metadata declares needs more values than the " + std::to_string(b.limit) +
+                                 " its tensors hold (tensor '" + name + "' " + shape_string(shape) + " alone has " + std::to_string(n) +
+                                 "): the metadata does not match the file");
+    b.used += n;
+    return n;
+}
+}  // namespace detail
+struct ParamBudget {
+    detail::ParamBudgetState saved;
+    ParamBudget(long values, const std::string& source) : saved(detail::param_budget()) {
+        detail::param_budget() = {std::max(0L, values), 0, source};
+    }
+    ~ParamBudget() { detail::param_budget() = saved; }
+    ParamBudget(const ParamBudget&) = delete;
+    ParamBudget& operator=(const ParamBudget&) = delete;
+};
+
+// value, grad (P): the trainable parameters of a model in one flat buffer; state (S): the
+// tensors that are not trained (BatchNorm running statistics, normalisation limits), kept apart
+// so that optimizers, EMA and gradient clipping see only weights and a forward pass in training
+// mode (which updates running statistics) never writes the weights. Entries are named views;
+// checkpoints hold both kinds under their names.
 struct ParamStore {
-    Vec value, grad;
+    Vec value, grad, state;
     struct Entry {
         std::string name;
-        int offset;
+        int offset;              // into value (trainable) or state
         std::vector<int> shape;  // row-major, as in the checkpoint (see Conventions)
         bool trainable;          // false: state such as BatchNorm running statistics
         int numel() const { return (int)detail::shape_numel(shape); }
     };
     std::vector<Entry> entries;
 
-    // Appends a tensor initialised now and returns its offset. Names must be unique and must
-    // not start with "optim." (reserved for optimizer state in checkpoints).
+    // Appends a tensor initialised now and returns its offset (into value, or into state when
+    // not trainable). Names must be unique and must not start with "optim." (reserved for
+    // optimizer state in checkpoints).
     int add(const std::string& name, std::vector<int> shape, Init init, Rng& rng, bool trainable = true) {
         MADBP_ASSERT(find(name) == nullptr);
         MADBP_ASSERT(name.rfind("optim.", 0) != 0 && !name.empty());
         MADBP_ASSERT(std::all_of(shape.begin(), shape.end(), [](int d) { return d >= 0; }));
-        const int offset = size();
-        const int n = (int)detail::shape_numel(shape);
-        value.conservativeResize(offset + n);
-        grad.conservativeResize(offset + n);
-        grad.segment(offset, n).setZero();
+        Vec& buf = trainable ? value : state;
+        const int offset = (int)buf.size();
+        const int n = (int)detail::charge_params(name, shape, offset);  // checks limits before allocating
+        buf.conservativeResize(offset + n);
+        if (trainable) {
+            grad.conservativeResize(offset + n);
+            grad.segment(offset, n).setZero();
+        }
         for (int i = 0; i < n; ++i) {
             float v = 0;
             switch (init.kind) {
@@ -253,7 +310,7 @@ struct ParamStore {
                 case Init::Uniform: v = (float)rng.uniform(-init.scale, init.scale); break;
                 case Init::Normal: v = (float)(init.scale * rng.normal()); break;
             }
-            value[offset + i] = v;
+            buf[offset + i] = v;
         }
         entries.push_back({name, offset, std::move(shape), trainable});
         return offset;
@@ -263,6 +320,8 @@ struct ParamStore {
             if (e.name == name) return &e;
         return nullptr;
     }
+    float* data(const Entry& e) { return (e.trainable ? value : state).data() + e.offset; }
+    const float* data(const Entry& e) const { return (e.trainable ? value : state).data() + e.offset; }
     Eigen::Map<Mat> view(int offset, int rows, int cols) { return {value.data() + offset, rows, cols}; }
     Eigen::Map<const Mat> view(int offset, int rows, int cols) const { return {value.data() + offset, rows, cols}; }
     Eigen::Map<Mat> grad_view(int offset, int rows, int cols) { return {grad.data() + offset, rows, cols}; }
@@ -270,13 +329,11 @@ struct ParamStore {
     Eigen::Map<Vec> vec(int offset, int n) { return {value.data() + offset, n}; }
     Eigen::Map<const Vec> vec(int offset, int n) const { return {value.data() + offset, n}; }
     Eigen::Map<Vec> grad_vec(int offset, int n) { return {grad.data() + offset, n}; }
+    Eigen::Map<Vec> state_vec(int offset, int n) { return {state.data() + offset, n}; }
+    Eigen::Map<const Vec> state_vec(int offset, int n) const { return {state.data() + offset, n}; }
     void zero_grad() { grad.setZero(); }
-    int size() const { return (int)value.size(); }
-    long trainable_count() const {  // parameters, without state such as running statistics
-        long n = 0;
-        for (auto& e : entries) if (e.trainable) n += e.numel();
-        return n;
-    }
+    int size() const { return (int)value.size(); }  // trainable parameters
+    long trainable_count() const { return (long)value.size(); }
 };
 
 // ---------------------------------------------------------------------------------------------
@@ -536,8 +593,8 @@ struct Conv1d {
     Conv1d() = default;
     Conv1d(ParamStore& ps_, const std::string& name, int cin_, int cout_, int k_, Rng& rng)
         : ps(&ps_), cin(cin_), cout(cout_), k(k_) {
-        MADBP_ASSERT(k % 2 == 1);
-        const float bound = 1.0f / std::sqrt((float)(cin * k));
+        MADBP_ASSERT(k % 2 == 1 && k > 0);
+        const float bound = 1.0f / std::sqrt((float)cin * (float)k);  // float product: no int overflow for any k
         w = ps->add(name + ".weight", {k, cin, cout}, Init::uniform(bound), rng);
         b = ps->add(name + ".bias", {cout}, Init::uniform(bound), rng);
     }
@@ -569,7 +626,7 @@ struct ConvTranspose1d {
     ConvTranspose1d() = default;
     ConvTranspose1d(ParamStore& ps_, const std::string& name, int cin_, int cout_, Rng& rng)
         : ps(&ps_), cin(cin_), cout(cout_) {
-        const float bound = 1.0f / std::sqrt((float)(cout * k));  // PyTorch's fan_in for this layer
+        const float bound = 1.0f / std::sqrt((float)cout * (float)k);  // PyTorch's fan_in for this layer
         w = ps->add(name + ".weight", {cin, k, cout}, Init::uniform(bound), rng);
         b = ps->add(name + ".bias", {cout}, Init::uniform(bound), rng);
     }
@@ -640,8 +697,8 @@ struct BatchNorm1d {
         if (training)
             for (int j = 0; j < N; ++j) count += on(column_mask, j) ? 1.0f : 0.0f;
         used_batch_stats = training && count > 0;
-        auto rm = ps->vec(running_mean, C);
-        auto rv = ps->vec(running_var, C);
+        auto rm = ps->state_vec(running_mean, C);
+        auto rv = ps->state_vec(running_var, C);
         if (used_batch_stats) {
             mean.setZero();
             for (int j = 0; j < N; ++j)
@@ -735,7 +792,7 @@ struct Conv2d {
     Conv2d(ParamStore& ps_, const std::string& name, int cin_, int cout_, int k_, int stride_, int pad_, Rng& rng)
         : ps(&ps_), cin(cin_), cout(cout_), k(k_), stride(stride_), pad(pad_) {
         MADBP_ASSERT(k > 0 && stride > 0 && pad >= 0);
-        const float bound = 1.0f / std::sqrt((float)(cin * k * k));
+        const float bound = 1.0f / std::sqrt((float)cin * (float)k * (float)k);
         w = ps->add(name + ".weight", {k, k, cin, cout}, Init::uniform(bound), rng);
         b = ps->add(name + ".bias", {cout}, Init::uniform(bound), rng);
     }
@@ -937,7 +994,7 @@ struct Adam {
         const float bc1 = (float)(1.0 - std::pow((double)beta1, (double)step));
         const float bc2 = (float)(1.0 - std::pow((double)beta2, (double)step));
         for (auto& e : ps.entries) {
-            if (!e.trainable) continue;
+            if (!e.trainable) continue;  // state lives in ps.state
             const int o = e.offset, n = e.numel();
             auto p = ps.value.segment(o, n).array();
             auto g = ps.grad.segment(o, n).array();
@@ -966,9 +1023,9 @@ inline float clip_grad_norm(ParamStore& ps, float max_norm) {
     return (float)norm;
 }
 
-// Exponential moving average of the weights: shadow = decay * shadow + (1 - decay) * value
-// for trainable entries; non-trainable ones (running statistics) are copied. The first update
-// copies everything. shadow (P) is the state to checkpoint.
+// Exponential moving average of the weights: shadow = decay * shadow + (1 - decay) * value.
+// The first update copies the weights. shadow (P) is the state to checkpoint; the store's
+// state (running statistics) is not averaged: the live statistics go with the EMA weights.
 struct Ema {
     float decay = 0.995f;
     Vec shadow;
@@ -978,12 +1035,7 @@ struct Ema {
             shadow = ps.value;
             return;
         }
-        for (auto& e : ps.entries) {
-            auto s = shadow.segment(e.offset, e.numel());
-            auto p = ps.value.segment(e.offset, e.numel());
-            if (e.trainable) s = decay * s + (1 - decay) * p;
-            else s = p;
-        }
+        shadow = decay * shadow + (1 - decay) * ps.value;
     }
     void copy_to(ParamStore& ps) const {
         MADBP_ASSERT(shadow.size() == ps.size());
@@ -1030,6 +1082,12 @@ struct SafeTensors {
         auto it = metadata.find(key);
         if (it == metadata.end()) throw std::runtime_error(source + ": __metadata__ has no '" + key + "'");
         return it->second;
+    }
+    // Float values in all tensors: the ParamBudget a loader builds the declared model in.
+    long values() const {
+        long n = 0;
+        for (auto& t : tensors) n += (long)t.data.size();
+        return n;
     }
 };
 
@@ -1254,21 +1312,20 @@ inline float load_f32_le(const uint8_t* p) {
 
 }  // namespace detail
 
-constexpr uint64_t kSafetensorsMaxHeader = 100000000;  // the reference implementation's limit
+constexpr uint64_t kSafetensorsMaxHeader = 100000000;  // header JSON, bytes (the reference implementation's limit)
+constexpr uint64_t kMaxCheckpointBytes = 1ull << 31;    // a checkpoint or training-state file, bytes (2 GiB)
 
-// Parses and validates a whole safetensors file held in memory. Throws std::runtime_error
-// naming `source` and the offending field on anything but a well-formed file of finite F32
-// tensors whose offsets tile the payload exactly.
-inline SafeTensors parse_safetensors(const uint8_t* data, size_t size, const std::string& source = "<memory>") {
+namespace detail {
+constexpr uint64_t kPayloadUnknown = ~0ull;
+
+// Parses and validates the JSON header (`n` bytes at `header`) of a checkpoint whose payload
+// is `payload` bytes, or kPayloadUnknown (a pipe: then `payload` becomes the bytes the header
+// declares). Returns the metadata and the tensors in payload order with their shapes, data
+// not read; `ends` gets each tensor's end offset. Throws std::runtime_error naming `source`.
+inline SafeTensors parse_safetensors_header(const uint8_t* header, uint64_t n, uint64_t& payload, const std::string& source,
+                                            std::vector<uint64_t>& ends) {
     using detail::JsonValue;
     auto fail = [&](const std::string& what) -> void { throw std::runtime_error(source + ": " + what); };
-    if (size < 8) fail("file is " + std::to_string(size) + " bytes, shorter than the 8-byte header size");
-    uint64_t n = 0;
-    for (int i = 7; i >= 0; --i) n = (n << 8) | data[i];
-    if (n > kSafetensorsMaxHeader) fail("header size " + std::to_string(n) + " exceeds the 100 MB limit");
-    if (n > size - 8)
-        fail("header size " + std::to_string(n) + " runs past the end of the file (" + std::to_string(size) + " bytes)");
-    const uint8_t* header = data + 8;
     if (!detail::valid_utf8(header, n)) fail("header is not valid UTF-8");
     if (n == 0 || header[0] != '{') fail("header does not start with '{'");
     detail::JsonParser parser((const char*)header, n, source);
@@ -1277,7 +1334,7 @@ inline SafeTensors parse_safetensors(const uint8_t* data, size_t size, const std
 
     SafeTensors st;
     st.source = source;
-    const uint64_t payload = size - 8 - n;
+    const bool known = payload != kPayloadUnknown;
     struct Span { uint64_t begin, end; size_t tensor; };
     std::vector<Span> spans;
     std::vector<std::string> seen;
@@ -1325,7 +1382,9 @@ inline SafeTensors parse_safetensors(const uint8_t* data, size_t size, const std
         const uint64_t end = detail::json_uint(offsets->items[1], source, where + ": data_offsets[1]");
         const std::string range = "[" + std::to_string(begin) + ", " + std::to_string(end) + "]";
         if (end < begin) fail(where + ": data_offsets " + range + " end before they begin");
-        if (end > payload) fail(where + ": data_offsets " + range + " run past the payload (" + std::to_string(payload) + " bytes)");
+        if (known && end > payload) fail(where + ": data_offsets " + range + " run past the payload (" + std::to_string(payload) + " bytes)");
+        if (!known && end > kMaxCheckpointBytes)
+            fail(where + ": data_offsets " + range + " run past the limit kMaxCheckpointBytes = " + std::to_string(kMaxCheckpointBytes));
         if (overflow || numel * 4 != end - begin)
             fail(where + ": shape " + detail::shape_string(t.shape) + " of F32 needs " + (overflow ? "too many" : std::to_string(numel * 4)) +
                  " bytes but data_offsets " + range + " hold " + std::to_string(end - begin));
@@ -1344,23 +1403,50 @@ inline SafeTensors parse_safetensors(const uint8_t* data, size_t size, const std
                  std::to_string(expected) + (s.begin < expected ? " (overlap)" : " (gap)"));
         expected = s.end;
     }
+    if (!known) payload = expected;
     if (expected != payload)
         fail("tensors cover " + std::to_string(expected) + " bytes of a " + std::to_string(payload) + "-byte payload");
-    const uint8_t* base = data + 8 + n;
     std::vector<NamedTensor> ordered;  // payload order
+    ends.clear();
     for (const Span& s : spans) {
-        NamedTensor& t = st.tensors[s.tensor];
-        const size_t count = (size_t)((s.end - s.begin) / 4);
-        t.data.resize(count);
-        for (size_t i = 0; i < count; ++i) {
-            const float f = detail::load_f32_le(base + s.begin + 4 * i);
-            if (!std::isfinite(f))
-                fail("tensor '" + t.name + "': element " + std::to_string(i) + " is " + (std::isnan(f) ? "NaN" : "infinite"));
-            t.data[i] = f;
-        }
-        ordered.push_back(std::move(t));
+        ordered.push_back(std::move(st.tensors[s.tensor]));
+        ends.push_back(s.end);
     }
     st.tensors = std::move(ordered);
+    return st;
+}
+
+// Checks that the values just read into `t` are finite.
+inline void check_finite_tensor(const NamedTensor& t, const std::string& source) {
+    for (size_t i = 0; i < t.data.size(); ++i)
+        if (!std::isfinite(t.data[i]))
+            throw std::runtime_error(source + ": tensor '" + t.name + "': element " + std::to_string(i) + " is " +
+                                     (std::isnan(t.data[i]) ? "NaN" : "infinite"));
+}
+}  // namespace detail
+
+// Parses and validates a whole safetensors file held in memory. Throws std::runtime_error
+// naming `source` and the offending field on anything but a well-formed file of finite F32
+// tensors whose offsets tile the payload exactly.
+inline SafeTensors parse_safetensors(const uint8_t* data, size_t size, const std::string& source = "<memory>") {
+    auto fail = [&](const std::string& what) -> void { throw std::runtime_error(source + ": " + what); };
+    if (size < 8) fail("file is " + std::to_string(size) + " bytes, shorter than the 8-byte header size");
+    uint64_t n = 0;
+    for (int i = 7; i >= 0; --i) n = (n << 8) | data[i];
+    if (n > kSafetensorsMaxHeader) fail("header size " + std::to_string(n) + " exceeds the 100 MB limit kSafetensorsMaxHeader");
+    if (n > size - 8)
+        fail("header size " + std::to_string(n) + " runs past the end of the file (" + std::to_string(size) + " bytes)");
+    uint64_t payload = size - 8 - n;
+    std::vector<uint64_t> ends;
+    SafeTensors st = detail::parse_safetensors_header(data + 8, n, payload, source, ends);
+    const uint8_t* base = data + 8 + n;
+    for (size_t k = 0; k < st.tensors.size(); ++k) {
+        NamedTensor& t = st.tensors[k];
+        const size_t count = (size_t)detail::shape_numel(t.shape), begin = (size_t)(ends[k] - 4 * count);
+        t.data.resize(count);
+        for (size_t i = 0; i < count; ++i) t.data[i] = detail::load_f32_le(base + begin + 4 * i);
+        detail::check_finite_tensor(t, source);
+    }
     return st;
 }
 
@@ -1472,16 +1558,12 @@ inline void write_file_atomic(const std::string& path, const std::vector<uint8_t
     }
 }
 
-inline std::vector<uint8_t> read_file(const std::string& path) {
-    FILE* f = std::fopen(path.c_str(), "rb");
-    if (!f) detail::io_fail(path, "cannot open");
+// The bytes of `path` (a regular file or a pipe). A directory, a device (/dev/zero) or a file
+// of more than `max_bytes` is refused before reading (std::runtime_error naming `limit`).
+inline std::vector<uint8_t> read_file(const std::string& path, uint64_t max_bytes = kMaxCheckpointBytes,
+                                      const std::string& limit = "kMaxCheckpointBytes") {
     std::vector<uint8_t> bytes;
-    uint8_t buf[1 << 16];
-    size_t got;
-    while ((got = std::fread(buf, 1, sizeof buf, f)) > 0) bytes.insert(bytes.end(), buf, buf + got);
-    const bool error = std::ferror(f);
-    std::fclose(f);
-    if (error) detail::io_fail(path, "read failed");
+    detail::read_bounded(path, max_bytes, limit, bytes);
     return bytes;
 }
 
@@ -1490,9 +1572,57 @@ inline void save_safetensors(const std::string& path, const std::vector<NamedTen
     write_file_atomic(path, serialize_safetensors(tensors, metadata));
 }
 
+// Loads a checkpoint by its declared header, never slurping the file: the 8-byte size, the
+// header (<= kSafetensorsMaxHeader), then each tensor's bytes straight into its data. Refuses a
+// directory, a device (/dev/zero), a file over kMaxCheckpointBytes, and anything
+// parse_safetensors refuses; std::runtime_error naming the path and the field.
 inline SafeTensors load_safetensors(const std::string& path) {
-    const std::vector<uint8_t> bytes = read_file(path);
-    return parse_safetensors(bytes.data(), bytes.size(), path);
+    auto fail = [&](const std::string& what) -> void { throw std::runtime_error(path + ": " + what); };
+    const int fd = ::open(path.c_str(), O_RDONLY | O_CLOEXEC);
+    if (fd < 0) detail::io_fail(path, "cannot open");
+    struct FdCloser { int fd; ~FdCloser() { ::close(fd); } } closer{fd};
+    struct stat sb;
+    if (::fstat(fd, &sb) != 0) detail::io_fail(path, "cannot stat");
+    if (S_ISDIR(sb.st_mode)) fail("is a directory, not a checkpoint file");
+    if (!S_ISREG(sb.st_mode) && !S_ISFIFO(sb.st_mode)) fail("is a device, not a checkpoint file");
+    const bool regular = S_ISREG(sb.st_mode);
+    const uint64_t size = regular ? (uint64_t)sb.st_size : 0;
+    if (regular && size > kMaxCheckpointBytes)
+        fail(std::to_string(size) + " bytes exceed the limit kMaxCheckpointBytes = " + std::to_string(kMaxCheckpointBytes));
+    if (regular && size < 8) fail("file is " + std::to_string(size) + " bytes, shorter than the 8-byte header size");
+    auto read_exact = [&](void* dst, uint64_t n, const std::string& what) {
+        uint8_t* p = (uint8_t*)dst;
+        while (n > 0) {
+            const ssize_t got = ::read(fd, p, (size_t)std::min<uint64_t>(n, 1u << 30));
+            if (got < 0 && errno == EINTR) continue;
+            if (got < 0) detail::io_fail(path, "read failed");
+            if (got == 0) fail("file ends inside " + what + " (truncated)");
+            p += got;
+            n -= (uint64_t)got;
+        }
+    };
+    uint8_t head[8];
+    read_exact(head, 8, "the 8-byte header size");
+    uint64_t n = 0;
+    for (int i = 7; i >= 0; --i) n = (n << 8) | head[i];
+    if (n > kSafetensorsMaxHeader) fail("header size " + std::to_string(n) + " exceeds the 100 MB limit kSafetensorsMaxHeader");
+    if (regular && n > size - 8)
+        fail("header size " + std::to_string(n) + " runs past the end of the file (" + std::to_string(size) + " bytes)");
+    std::vector<uint8_t> header((size_t)n);
+    read_exact(header.data(), n, "the header");
+    uint64_t payload = regular ? size - 8 - n : detail::kPayloadUnknown;
+    std::vector<uint64_t> ends;
+    SafeTensors st = detail::parse_safetensors_header(header.data(), n, payload, path, ends);
+    for (NamedTensor& t : st.tensors) {  // payload order: each tensor's bytes follow the last one's
+        t.data.resize((size_t)detail::shape_numel(t.shape));
+        read_exact(t.data.data(), 4 * (uint64_t)t.data.size(), "tensor '" + t.name + "'");
+        detail::check_finite_tensor(t, path);
+    }
+    if (!regular) {
+        uint8_t extra;
+        if (::read(fd, &extra, 1) > 0) fail("more bytes follow the " + std::to_string(payload) + "-byte payload the header declares");
+    }
+    return st;
 }
 
 // --- Parameters and training state in checkpoints -------------------------------------------
@@ -1506,7 +1636,7 @@ inline NamedTensor make_tensor(const std::string& name, std::vector<int> shape, 
 // One tensor per store entry, named and shaped as the entry.
 inline std::vector<NamedTensor> param_tensors(const ParamStore& ps) {
     std::vector<NamedTensor> out;
-    for (auto& e : ps.entries) out.push_back(make_tensor(e.name, e.shape, ps.value.data() + e.offset));
+    for (auto& e : ps.entries) out.push_back(make_tensor(e.name, e.shape, ps.data(e)));
     return out;
 }
 
@@ -1525,7 +1655,7 @@ inline void read_param_tensors(const SafeTensors& st, ParamStore& ps) {
             throw std::runtime_error(st.source + ": tensor '" + t.name + "' is not a parameter of this model");
     for (auto& e : ps.entries) {
         const NamedTensor& t = st.at(e.name);
-        std::copy(t.data.begin(), t.data.end(), ps.value.data() + e.offset);
+        std::copy(t.data.begin(), t.data.end(), ps.data(e));
     }
 }
 
@@ -1623,6 +1753,11 @@ enum class Processor { AAP, LE };      // axial attention processor | linear enc
 enum class WindowMode { MW, CT };      // moving window | complete trajectory (ablation)
 enum class Prediction { Eps, X0 };     // the network predicts the noise (paper) | the clean window
 
+// Limits of ModelConfig::validate beyond each field's range (docs/limits.md): the U-Net kernel,
+// and the temporal attention's scores per agent (heads x horizon^2 floats of workspace).
+constexpr int kMaxKernel = 255;
+constexpr long kMaxAttentionScores = 1L << 24;
+
 struct ModelConfig {
     int horizon = 16;                  // H, waypoints per window incl. the current position; multiple of 2^levels
     int waypoint_stride = 1;           // world steps between consecutive waypoints (the window spans (H-1)*stride steps)
@@ -1657,7 +1792,11 @@ struct ModelConfig {
         if (grid < 8 || grid > 1024 || grid % 8) bad("grid", "must be a multiple of 8 in [8, 1024]");
         if (local_grid < 0 || local_grid % 4 || local_grid > 256) bad("local_grid", "must be 0 or a multiple of 4 up to 256");
         if (!(local_extent > 0) || !std::isfinite(local_extent)) bad("local_extent", "must be positive");
-        if (kernel < 1 || kernel % 2 == 0) bad("kernel", "must be odd");
+        if (kernel < 1 || kernel % 2 == 0 || kernel > kMaxKernel)
+            bad("kernel", std::to_string(kernel) + " must be odd and in [1, kMaxKernel = " + std::to_string(kMaxKernel) + "]");
+        if ((long)heads * horizon * horizon > kMaxAttentionScores)
+            bad("horizon/heads", "heads x horizon^2 = " + std::to_string((long)heads * horizon * horizon) +
+                                     " attention scores per agent exceed the limit kMaxAttentionScores = " + std::to_string(kMaxAttentionScores));
         if (waypoint_stride < 1 || waypoint_stride > 16) bad("waypoint_stride", "must be in [1, 16]");
         if (diffusion_steps < 2 || diffusion_steps > 100000) bad("diffusion_steps", "must be in [2, 100000]");
         if (sample_steps < 1 || sample_steps > diffusion_steps) bad("sample_steps", "must be in [1, diffusion_steps]");
@@ -1692,10 +1831,10 @@ struct ModelConfig {
             long v = 0;
             try { v = std::stol(s, &pos); } catch (...) { pos = 0; }
             if (pos != s.size() || s.empty() || v < -(1L << 30) || v > (1L << 30))
-                throw std::runtime_error(source + ": metadata field '" + k + "' is not an integer ('" + s + "')");
+                throw std::runtime_error(source + ": metadata field '" + k + "' is not an integer ('" + printable(s) + "')");
             return (int)v;
         };
-        if (get("model") != "madbp") throw std::runtime_error(source + ": not an MA-DBP checkpoint (model = '" + get("model") + "')");
+        if (get("model") != "madbp") throw std::runtime_error(source + ": not an MA-DBP checkpoint (model = '" + printable(get("model")) + "')");
         ModelConfig c;
         c.horizon = integer("horizon");
         c.waypoint_stride = integer("waypoint_stride");
@@ -1714,7 +1853,8 @@ struct ModelConfig {
             size_t pos = 0;
             int v = 0;
             try { v = std::stoi(item, &pos); } catch (...) { pos = 0; }
-            if (pos == 0 || pos != item.size()) throw std::runtime_error(source + ": metadata field 'channels' is malformed");
+            if (pos == 0 || pos != item.size() || c.channels.size() >= 4)
+                throw std::runtime_error(source + ": metadata field 'channels' is malformed or has more than 4 levels");
             c.channels.push_back(v);
         }
         const std::string& p = get("processor");
@@ -1727,7 +1867,8 @@ struct ModelConfig {
             const std::string& s = get(k);
             char* end = nullptr;
             const float v = std::strtof(s.c_str(), &end);
-            if (s.empty() || *end != '\0') throw std::runtime_error(source + ": metadata field '" + k + "' is not a number ('" + s + "')");
+            if (s.empty() || end != s.c_str() + s.size())
+                throw std::runtime_error(source + ": metadata field '" + k + "' is not a number ('" + printable(s) + "')");
             return v;
         };
         c.position_scale = real("position_scale");
@@ -1768,19 +1909,39 @@ struct SceneBatch {
     void resize(int B_, int n_, const ModelConfig& c, bool shared = false) { resize(B_, n_, c.grid, c.local_grid, shared); }
 };
 
-// An agent's own view of the static map: Gl x Gl cells of width 2 * extent / Gl centred on p
-// (world units), row-major from the lowest y; a cell is 1 when an obstacle or wall surface is
-// within half a cell of its centre (so thin walls are never missed) or it lies beyond the walls.
-inline void local_crop(const Map& map, Vec2 p, int Gl, double extent, float* out) {
-    const double w = 2 * extent / Gl;
-    for (int row = 0; row < Gl; ++row)
-        for (int col = 0; col < Gl; ++col) {
-            const Vec2 c{p.x - extent + (col + 0.5) * w, p.y - extent + (row + 0.5) * w};
-            out[row * Gl + col] = static_clearance(map, c) < 0.5 * w ? 1.0f : 0.0f;
-        }
+// ---------------------------------------------------------------------------------------------
+// The world-to-model encoding: the one place where robots, goals and the map become a
+// SceneBatch. The planner (DiffusionPlanner::plan_into) and the trainer (make_train_batch)
+// both call these, so what the model sees in training is what it sees when planning.
+
+// Scene `scene`'s map as the model's occupancy grid.
+inline void encode_map(SceneBatch& batch, int scene, const Map& map, const ModelConfig& c) {
+    const Grid g = occupancy_grid(map, c.grid);
+    const long G2 = (long)c.grid * c.grid;
+    for (long j = 0; j < G2; ++j) batch.grid(0, scene * G2 + j) = g.cells[j];
 }
-inline void fill_local_crop(SceneBatch& batch, int a, const Map& map, Vec2 p, const ModelConfig& c) {
-    if (c.local_grid > 0) local_crop(map, p, c.local_grid, c.local_extent, batch.local.data() + (long)a * c.local_grid * c.local_grid);
+
+// Agent column a: active, with PE_agent slot `slot`, its normalised position and goal, and its
+// own crop of the map (when the model has one).
+inline void encode_agent(SceneBatch& batch, int a, int slot, Vec2 pos, Vec2 goal, const Map& map, const ModelConfig& c) {
+    batch.agent_mask[a] = 1;
+    batch.slot[a] = slot;
+    batch.pose.col(a) << (float)(pos.x / c.position_scale), (float)(pos.y / c.position_scale), (float)(goal.x / c.position_scale),
+        (float)(goal.y / c.position_scale);
+    if (c.local_grid > 0) local_crop(map, pos, c.local_grid, c.local_extent, batch.local.data() + (long)a * c.local_grid * c.local_grid);
+}
+
+// About the distance a window covers at the expert's cruising pace (0.55 units for 15 steps).
+inline float default_goal_reach(const ModelConfig& c) { return (float)(0.55 * (c.horizon - 1) * c.waypoint_stride / 15.0); }
+
+// The goal-pinning rule: agent a's window ends at its goal when the goal is within `reach`
+// world units of it. Training pins that waypoint (to the demonstrated end), the sampler
+// inpaints it with the goal, `*end` (normalised displacement units).
+inline bool end_pinned(const SceneBatch& batch, int a, const ModelConfig& c, float reach, Eigen::Vector2f* end = nullptr) {
+    const Eigen::Vector2f to_goal = (batch.pose.col(a).tail<2>() - batch.pose.col(a).head<2>()) * c.position_scale;
+    if (to_goal.norm() > reach) return false;
+    if (end) *end = to_goal / c.window_scale;
+    return true;
 }
 
 namespace detail {
@@ -1800,17 +1961,27 @@ inline void time_to_agent_major(const Mat& y, int B, int n, int H, Mat& x) {
 }
 }  // namespace detail
 
+// ---------------------------------------------------------------------------------------------
+// Model parts: each is a small struct with forward/backward over the model's layouts, built
+// into a caller's ParamStore. MadbpModel composes ContextEncoder, StepEmbedding,
+// TrajectoryProcessor and FilmUNet; MADiff (madbp_train.hpp) uses StepEmbedding and FilmUNet
+// with agent attention.
+
 // One U-Net level's block: x (cin, T*A) -> y (cout, T*A):
 // Conv1d -> BatchNorm -> ReLU -> FiLM(cond) -> Conv1d -> BatchNorm -> ReLU.
-// cond (D, A) gives gamma, beta (cout, A) through a Linear; BatchNorm counts active columns only.
+// cond (Dc, A) gives gamma, beta (cout, A) through a Linear; BatchNorm counts active columns only.
 struct ConvBlock {
     Conv1d conv1, conv2;
     BatchNorm1d bn1, bn2;
     ReLU relu1, relu2;
     Linear film;
     int cout = 0;
-    Mat c1, n1, a1, gb, gamma, beta, f1, c2, n2;  // forward intermediates
-    Mat d_a, d_b, d_gamma, d_beta, d_gb, d_cond;  // backward scratch
+    Mat c1, n1, a1, f1, c2, n2;    // (cout, T*A) forward intermediates
+    Mat gb;                        // (2*cout, A) FiLM output: gamma on top of beta
+    Mat gamma, beta;               // (cout, A)
+    Mat d_a, d_b;                  // (cout, T*A) backward scratch
+    Mat d_gamma, d_beta, d_gb;     // (cout, A), (cout, A), (2*cout, A)
+    Mat d_cond;                    // (Dc, A)
 
     ConvBlock() = default;
     ConvBlock(ParamStore& ps, const std::string& name, int cin, int cout_, int k, int cond_dim, Rng& rng)
@@ -1848,9 +2019,432 @@ struct ConvBlock {
     }
 };
 
-// The denoiser eps_theta(X^k, k, c). Not copyable (layers point into its ParamStore); movable
-// through the unique_ptr. Use: encode_context(batch) once per scene batch, then denoise(x, k)
-// as often as the sampler needs; backward(d_eps) after one encode_context + denoise pair.
+// Self-attention over the n agents of a scene at each time step, pre-LayerNorm, residual:
+// x (C, T*A) agent-major (A = B*n) -> y (C, T*A) = x + MHA(LN(x)) with the agents of scene b at
+// time t as queries and keys (no mask: the team is fixed). backward(x, T, B, n, dy, dx).
+struct AgentAttention {
+    LayerNorm ln;
+    MultiHeadAttention att;
+    Mat x_tm, z, a_tm, a;          // (C, T*A): x time-major, LN(x_tm), attention out time- and agent-major
+    Mat d_tm, d_q, d_kv, d_z;      // (C, T*A) backward scratch
+
+    AgentAttention() = default;
+    AgentAttention(ParamStore& ps, const std::string& name, int C, int heads, Rng& rng)
+        : ln(ps, name + ".ln", C, rng), att(ps, name + ".attn", C, heads, rng) {}
+    void forward(const Mat& x, int T, int B, int n, Mat& y) {
+        MADBP_ASSERT(x.cols() == (long)T * B * n);
+        detail::agent_to_time_major(x, B, n, T, x_tm);
+        ln.forward(x_tm, z);
+        att.forward(z, n, z, n, B * T, nullptr, a_tm);
+        detail::time_to_agent_major(a_tm, B, n, T, a);
+        y = x + a;
+    }
+    void backward(const Mat& x, int T, int B, int n, const Mat& dy, Mat& dx) {
+        detail::agent_to_time_major(dy, B, n, T, d_tm);
+        att.backward(z, n, z, n, B * T, nullptr, d_tm, d_q, d_kv);
+        d_q += d_kv;
+        ln.backward(x_tm, d_q, d_z);
+        detail::time_to_agent_major(d_z, B, n, T, dx);
+        dx += dy;
+    }
+};
+
+// The FiLM U-Net (SPEC 5): x (cin, H*A) -> y (cout, H*A), agent-major columns a*H + t. Level l
+// runs at T_l = H / 2^l with widths[l] channels; every block is FiLM-conditioned on each agent's
+// cond (Dc, A). With attention heads > 0 (MADiff), the agents of a scene attend to each other
+// on every skip and at the bottleneck. set_agent_mask() makes BatchNorm count only active
+// agents' columns (MA-DBP's padded teams); without it every column counts.
+// Tensor names: <name>.down<l>, <name>.mid, <name>.up<l>, <name>.decoder, <attn>.skip<l>, <attn>.mid.
+struct FilmUNet {
+    std::vector<ConvBlock> down, up;       // per level
+    ConvBlock mid;
+    std::vector<AgentAttention> skip_attn; // per level, when attention
+    AgentAttention mid_attn;
+    std::vector<MaxPool1d> pool;
+    std::vector<Upsample1d> upsample;
+    Conv1d decoder;
+    int H = 0, levels = 0;
+    bool attention = false;
+    std::vector<std::vector<float>> colmask;  // per level (T_l * A): active-agent columns; empty: all
+    // Forward intermediates, per level l unless noted.
+    std::vector<Mat> h;                    // (C_l, T_l*A) down block output
+    std::vector<Mat> skip;                 // (C_l, T_l*A) h after agent attention (attention only)
+    std::vector<Mat> pooled;               // (C_l, T_l/2*A)
+    std::vector<Mat> up_buf;               // (C_l+1 or C_L, T_l*A) the level below, upsampled
+    std::vector<Mat> cat;                  // (.. + C_l, T_l*A) [up_buf; skip]
+    std::vector<Mat> up_out;               // (C_l, T_l*A) up block output
+    Mat mid_h, mid_out;                    // (C_L, T_L*A) bottleneck before / after attention
+    // Backward scratch.
+    std::vector<Mat> d_skip;               // (C_l, T_l*A)
+    Mat d_cur, d_cat, d_up, d_mid, d_pool, d_h, d_tmp;
+
+    FilmUNet() = default;
+    FilmUNet(ParamStore& ps, const std::string& name, const std::string& attn_name, int cin, int cout,
+             const std::vector<int>& widths, int kernel, int cond_dim, int horizon, int attention_heads, Rng& rng)
+        : H(horizon), levels((int)widths.size()), attention(attention_heads > 0) {
+        const int L = levels;
+        int c = cin;
+        for (int l = 0; l < L; ++l) {
+            down.emplace_back(ps, name + ".down" + std::to_string(l), c, widths[l], kernel, cond_dim, rng);
+            if (attention) skip_attn.emplace_back(ps, attn_name + ".skip" + std::to_string(l), widths[l], attention_heads, rng);
+            c = widths[l];
+        }
+        mid = ConvBlock(ps, name + ".mid", c, c, kernel, cond_dim, rng);
+        if (attention) mid_attn = AgentAttention(ps, attn_name + ".mid", c, attention_heads, rng);
+        up.resize(L);
+        for (int l = L - 1; l >= 0; --l) {
+            up[l] = ConvBlock(ps, name + ".up" + std::to_string(l), c + widths[l], widths[l], kernel, cond_dim, rng);
+            c = widths[l];
+        }
+        decoder = Conv1d(ps, name + ".decoder", widths[0], cout, 1, rng);
+        pool.resize(L);
+        upsample.resize(L);
+        for (auto* v : {&h, &skip, &pooled, &up_buf, &cat, &up_out, &d_skip}) v->resize(L);
+    }
+    void set_training(bool on) {
+        for (auto& b : down) b.set_training(on);
+        for (auto& b : up) b.set_training(on);
+        mid.set_training(on);
+    }
+    // BatchNorm statistics over the columns of active agents only (agent_mask (A), 1 = active).
+    void set_agent_mask(const std::vector<float>& agent_mask) {
+        const int A = (int)agent_mask.size();
+        colmask.resize(levels + 1);
+        for (int l = 0; l <= levels; ++l) {
+            const int T = H >> l;
+            colmask[l].resize((size_t)T * A);
+            for (int a = 0; a < A; ++a)
+                for (int t = 0; t < T; ++t) colmask[l][(size_t)a * T + t] = agent_mask[a];
+        }
+    }
+
+    // x (cin, H*A), cond (Dc, A) -> y (cout, H*A); B scenes of n agents (A = B*n; for attention).
+    void forward(const Mat& x, const Mat& cond, int B, int n, Mat& y) {
+        const int L = levels;
+        for (int l = 0; l < L; ++l) {
+            down[l].forward(down_input(x, l), H >> l, cond, mask(l), h[l]);
+            if (attention) skip_attn[l].forward(h[l], H >> l, B, n, skip[l]);
+            pool[l].forward(h[l], H >> l, pooled[l]);
+        }
+        mid.forward(pooled[L - 1], H >> L, cond, mask(L), mid_h);
+        if (attention) mid_attn.forward(mid_h, H >> L, B, n, mid_out);
+        for (int l = L - 1; l >= 0; --l) {
+            upsample[l].forward(up_input(l), up_buf[l]);  // nearest x2, then the skip below it
+            const Mat& s = skip_of(l);
+            const long cu = up_buf[l].rows(), cs = s.rows();
+            cat[l].resize(cu + cs, up_buf[l].cols());
+            cat[l].topRows(cu) = up_buf[l];
+            cat[l].bottomRows(cs) = s;
+            up[l].forward(cat[l], H >> l, cond, mask(l), up_out[l]);
+        }
+        decoder.forward(up_out[0], H, y);
+    }
+    // Backward of the last forward: writes dx (cin, H*A), ADDS into dcond (Dc, A).
+    void backward(const Mat& x, const Mat& cond, int B, int n, const Mat& dy, Mat& dx, Mat& dcond) {
+        const int L = levels;
+        decoder.backward(up_out[0], H, dy, d_cur);
+        for (int l = 0; l < L; ++l) {
+            up[l].backward(cat[l], H >> l, cond, mask(l), d_cur, d_cat, dcond);
+            const long cu = up_input(l).rows(), cs = skip_of(l).rows();
+            d_skip[l] = d_cat.bottomRows(cs);
+            d_up = d_cat.topRows(cu);
+            upsample[l].backward(up_input(l), d_up, d_cur);
+        }
+        const Mat* d_mid_h = &d_cur;
+        if (attention) {
+            mid_attn.backward(mid_h, H >> L, B, n, d_cur, d_mid);
+            d_mid_h = &d_mid;
+        }
+        mid.backward(pooled[L - 1], H >> L, cond, mask(L), *d_mid_h, d_pool, dcond);
+        for (int l = L - 1; l >= 0; --l) {
+            pool[l].backward(h[l], H >> l, d_pool, d_h);
+            if (attention) {
+                skip_attn[l].backward(h[l], H >> l, B, n, d_skip[l], d_tmp);
+                d_h += d_tmp;
+            } else {
+                d_h += d_skip[l];
+            }
+            down[l].backward(down_input(x, l), H >> l, cond, mask(l), d_h, l == 0 ? dx : d_pool, dcond);
+        }
+    }
+
+private:
+    const float* mask(int l) const { return colmask.empty() ? nullptr : colmask[l].data(); }
+    const Mat& down_input(const Mat& x, int l) const { return l == 0 ? x : pooled[l - 1]; }
+    const Mat& skip_of(int l) const { return attention ? skip[l] : h[l]; }
+    const Mat& up_input(int l) const { return l == levels - 1 ? (attention ? mid_out : mid_h) : up_out[l + 1]; }
+};
+
+// Diffusion-step embedding (SPEC 5): k (B) -> tok (D, B) = Linear(Mish(Linear(sinusoidal(k)))),
+// D -> 2D -> D. Tensor names <name>.l1, <name>.l2. backward(d_tok) adds the parameter gradients.
+struct StepEmbedding {
+    Linear l1, l2;
+    Mish act;
+    int dim = 0;
+    std::vector<float> k;          // (B) the steps as floats
+    Mat sin, h1, h1a;              // (D, B), (2D, B), (2D, B)
+    Mat d_h1a, d_h1, d_sin;        // backward scratch
+
+    StepEmbedding() = default;
+    StepEmbedding(ParamStore& ps, const std::string& name, int D, Rng& rng)
+        : l1(ps, name + ".l1", D, 2 * D, rng), l2(ps, name + ".l2", 2 * D, D, rng), dim(D) {}
+    void forward(const int* steps, int B, Mat& tok) {
+        k.resize(B);
+        for (int b = 0; b < B; ++b) k[b] = (float)steps[b];
+        sinusoidal_embedding(k.data(), B, dim, sin);
+        l1.forward(sin, h1);
+        act.forward(h1, h1a);
+        l2.forward(h1a, tok);
+    }
+    void backward(const Mat& d_tok) {
+        l2.backward(h1a, d_tok, d_h1a);
+        act.backward(h1, d_h1a, d_h1);
+        l1.backward(sin, d_h1, d_sin);
+    }
+};
+
+// The context encoder (SPEC 5): the map's grid (a CNN to P image tokens), each agent's pose (an
+// MLP) plus its own map crop (a small CNN), and the scene's agent count (an embedding), fused by
+// attention of the pose tokens over all of them: batch -> ctx (D, A). With batch.shared_grid
+// the map is encoded once for every scene (planning).
+struct ContextEncoder {
+    Conv2d g1, g2, g3;             // grid CNN: (1, G*G) -> (16, G/2) -> (32, G/4) -> (D, G/8 = P tokens)
+    Conv2d l1, l2, l3;             // crop CNN: (1, Gl*Gl) -> (8, Gl/2) -> (16, Gl/4) -> (D, 1)
+    ReLU r1, r2, r3, r4;
+    Embedding pe_img, count_emb;
+    Linear pose1, pose2;
+    Mish pose_act;
+    MultiHeadAttention fuse;
+    LayerNorm ln;
+    ModelConfig config;
+    std::vector<int> img_ids, count_ids;   // (P*B), (B)
+    std::vector<float> kv_mask;            // (Lk*B), Lk = P + n + 1 keys per scene
+    Mat g1o, g1a, g2o, g2a;                // grid CNN intermediates
+    Mat img, img_one, tmp;                 // (D, P*B) image tokens; (D, P) the shared map's; scratch
+    Mat l1o, l1a, l2o, l2a, local_tok;     // crop CNN intermediates; (D, A) crop tokens
+    Mat p1, p1a, pose_tok;                 // (D, A) pose MLP
+    Mat count_tok;                         // (D, B)
+    Mat kv, att, pre_ln;                   // (D, Lk*B) keys; (D, A) attention out, residual sum
+    Mat d_pre, d_pose, d_kv, d_img, d_count;          // backward: (D, A), (D, A), (D, Lk*B), (D, P*B), (D, B)
+    Mat d_g2a, d_g2o, d_g1a, d_g1o, d_grid;           // grid CNN
+    Mat d_l1o, d_l1a, d_l2o, d_l2a, d_local;          // crop CNN
+    Mat d_p1a, d_p1, d_posein;                        // pose MLP
+
+    ContextEncoder() = default;
+    ContextEncoder(ParamStore& ps, const ModelConfig& c, Rng& rng) : config(c) {
+        const int D = c.dim;
+        g1 = Conv2d(ps, "ctx.grid1", 1, 16, 3, 2, 1, rng);
+        g2 = Conv2d(ps, "ctx.grid2", 16, 32, 3, 2, 1, rng);
+        g3 = Conv2d(ps, "ctx.grid3", 32, D, 3, 2, 1, rng);
+        pe_img = Embedding(ps, "ctx.pe_img", c.image_tokens(), D, rng);
+        pose1 = Linear(ps, "ctx.pose1", 4, D, rng);
+        pose2 = Linear(ps, "ctx.pose2", D, D, rng);
+        if (c.local_grid > 0) {
+            l1 = Conv2d(ps, "ctx.local1", 1, 8, 3, 2, 1, rng);
+            l2 = Conv2d(ps, "ctx.local2", 8, 16, 3, 2, 1, rng);
+            l3 = Conv2d(ps, "ctx.local3", 16, D, c.local_grid / 4, 1, 0, rng);  // the whole 4x4-reduced crop -> one token
+        }
+        count_emb = Embedding(ps, "ctx.count", c.n_max + 1, D, rng);
+        fuse = MultiHeadAttention(ps, "ctx.fuse", D, c.heads, rng);
+        ln = LayerNorm(ps, "ctx.ln", D, rng);
+    }
+
+    void forward(const SceneBatch& batch, Mat& ctx) {
+        const ModelConfig& c = config;
+        const int B = batch.B, n = batch.n, G = c.grid, P = c.image_tokens();
+        g1.forward(batch.grid, G, G, g1o);
+        r1.forward(g1o, g1a);
+        g2.forward(g1a, G / 2, G / 2, g2o);
+        r2.forward(g2o, g2a);
+        if (batch.shared_grid) {  // one map for every scene: encode it once, give each scene a copy
+            g3.forward(g2a, G / 4, G / 4, img_one);
+            img.resize(c.dim, (long)P * B);
+            for (int b = 0; b < B; ++b) img.middleCols((long)b * P, P) = img_one;
+        } else {
+            g3.forward(g2a, G / 4, G / 4, img);
+        }
+        img_ids.resize((size_t)P * B);
+        for (int j = 0; j < P * B; ++j) img_ids[j] = j % P;
+        pe_img.forward(img_ids.data(), P * B, tmp);
+        img += tmp;
+        pose1.forward(batch.pose, p1);
+        pose_act.forward(p1, p1a);
+        pose2.forward(p1a, pose_tok);
+        if (c.local_grid > 0) {  // each agent's own crop of the map, added to its pose token
+            const int Gl = c.local_grid;
+            l1.forward(batch.local, Gl, Gl, l1o);
+            r3.forward(l1o, l1a);
+            l2.forward(l1a, Gl / 2, Gl / 2, l2o);
+            r4.forward(l2o, l2a);
+            l3.forward(l2a, Gl / 4, Gl / 4, local_tok);
+            pose_tok += local_tok;
+        }
+        count_ids.assign(batch.count.begin(), batch.count.end());
+        count_emb.forward(count_ids.data(), B, count_tok);
+        // Keys of scene b: its P image tokens, its n pose tokens (inactive masked), its count token.
+        const int Lk = P + n + 1;
+        kv.resize(c.dim, (long)Lk * B);
+        kv_mask.resize((size_t)Lk * B);
+        for (int b = 0; b < B; ++b) {
+            const long o = (long)b * Lk;
+            kv.middleCols(o, P) = img.middleCols((long)b * P, P);
+            kv.middleCols(o + P, n) = pose_tok.middleCols((long)b * n, n);
+            kv.col(o + P + n) = count_tok.col(b);
+            for (int j = 0; j < P; ++j) kv_mask[o + j] = 1.0f;
+            for (int i = 0; i < n; ++i) kv_mask[o + P + i] = batch.agent_mask[(size_t)b * n + i];
+            kv_mask[o + P + n] = 1.0f;
+        }
+        fuse.forward(pose_tok, n, kv, Lk, B, kv_mask.data(), att);
+        pre_ln = pose_tok + att;
+        ln.forward(pre_ln, ctx);
+    }
+
+    // d_ctx (D, A) -> parameter gradients (one grid per scene: training batches).
+    void backward(const SceneBatch& batch, const Mat& d_ctx) {
+        const ModelConfig& c = config;
+        const int B = batch.B, n = batch.n, G = c.grid, P = c.image_tokens(), Lk = P + n + 1;
+        if (batch.shared_grid) throw std::logic_error("context backward: training needs one grid per scene (shared_grid is for planning)");
+        ln.backward(pre_ln, d_ctx, d_pre);
+        fuse.backward(pose_tok, n, kv, Lk, B, kv_mask.data(), d_pre, d_pose, d_kv);
+        d_pose += d_pre;
+        d_img.resize(c.dim, (long)P * B);
+        d_count.resize(c.dim, B);
+        for (int b = 0; b < B; ++b) {
+            const long o = (long)b * Lk;
+            d_img.middleCols((long)b * P, P) = d_kv.middleCols(o, P);
+            d_pose.middleCols((long)b * n, n) += d_kv.middleCols(o + P, n);
+            d_count.col(b) = d_kv.col(o + P + n);
+        }
+        count_emb.backward(count_ids.data(), B, d_count);
+        pose2.backward(p1a, d_pose, d_p1a);
+        pose_act.backward(p1, d_p1a, d_p1);
+        pose1.backward(batch.pose, d_p1, d_posein);
+        if (c.local_grid > 0) {
+            const int Gl = c.local_grid;
+            l3.backward(l2a, Gl / 4, Gl / 4, d_pose, d_l2a);
+            r4.backward(l2o, d_l2a, d_l2o);
+            l2.backward(l1a, Gl / 2, Gl / 2, d_l2o, d_l1a);
+            r3.backward(l1o, d_l1a, d_l1o);
+            l1.backward(batch.local, Gl, Gl, d_l1o, d_local);
+        }
+        pe_img.backward(img_ids.data(), P * B, d_img);
+        g3.backward(g2a, G / 4, G / 4, d_img, d_g2a);
+        r2.backward(g2o, d_g2a, d_g2o);
+        g2.backward(g1a, G / 2, G / 2, d_g2o, d_g1a);
+        r1.backward(g1o, d_g1a, d_g1o);
+        g1.backward(batch.grid, G, G, d_g1o, d_grid);
+    }
+};
+
+// The trajectory processor (SPEC 5): the noisy window x (2, H*A) -> out (D, H*A). A Linear of
+// [displacement; current position], then (AAP) positional embeddings of agent slot and time,
+// attention over time within each agent, attention over the agents at each time step (inactive
+// agents masked as keys), each with residual + LayerNorm, and a residual MLP. LE (ablation):
+// the Linear alone.
+struct TrajectoryProcessor {
+    Linear in_proj, mlp1, mlp2;
+    Embedding pe_agent, pe_time;
+    MultiHeadAttention time_attn, agent_attn;
+    LayerNorm ln_time, ln_agent;
+    Mish mlp_act;
+    ModelConfig config;
+    std::vector<int> slot_ids, time_ids;   // (H*A)
+    std::vector<float> agent_key_mask;     // (H*A) time-major
+    Mat in;                                // (4, H*A) [x; current position]
+    Mat proj, pe, pos, att_t, sum_t, xt;   // (D, H*A) agent-major
+    Mat xt_tm, att_a_tm;                   // (D, H*A) time-major
+    Mat att_a, sum_a, xat, m2;             // (D, H*A)
+    Mat m1, m1a;                           // (2D, H*A)
+    Mat out;                               // (D, H*A) the result (LE: proj)
+    Mat d_xat, d_m2, d_m1a, d_m1, d_sum_a, d_xt, d_tm, d_q, d_kv, d_sum_t, d_pos, d_x;  // backward scratch
+
+    TrajectoryProcessor() = default;
+    TrajectoryProcessor(ParamStore& ps, const ModelConfig& c, Rng& rng) : config(c) {
+        const int D = c.dim;
+        in_proj = Linear(ps, "aap.in_proj", 4, D, rng);
+        if (c.processor == Processor::AAP) {
+            pe_agent = Embedding(ps, "aap.pe_agent", c.n_max, D, rng);
+            pe_time = Embedding(ps, "aap.pe_time", c.horizon, D, rng);
+            time_attn = MultiHeadAttention(ps, "aap.time_attn", D, c.heads, rng);
+            ln_time = LayerNorm(ps, "aap.ln_time", D, rng);
+            agent_attn = MultiHeadAttention(ps, "aap.agent_attn", D, c.heads, rng);
+            ln_agent = LayerNorm(ps, "aap.ln_agent", D, rng);
+            mlp1 = Linear(ps, "aap.mlp1", D, 2 * D, rng);
+            mlp2 = Linear(ps, "aap.mlp2", 2 * D, D, rng);
+        }
+    }
+
+    void forward(const Mat& x, const SceneBatch& batch) {
+        const int B = batch.B, n = batch.n, A = B * n, H = config.horizon;
+        in.resize(4, (long)H * A);
+        in.topRows(2) = x;
+        for (int a = 0; a < A; ++a) in.block(2, (long)a * H, 2, H).colwise() = batch.pose.col(a).head<2>();
+        in_proj.forward(in, proj);
+        if (config.processor == Processor::LE) {
+            out = proj;
+            return;
+        }
+        slot_ids.resize((size_t)H * A);
+        time_ids.resize((size_t)H * A);
+        for (int a = 0; a < A; ++a)
+            for (int t = 0; t < H; ++t) {
+                slot_ids[(size_t)a * H + t] = batch.slot[a];
+                time_ids[(size_t)a * H + t] = t;
+            }
+        pe_agent.forward(slot_ids.data(), H * A, pe);
+        pos = proj + pe;
+        pe_time.forward(time_ids.data(), H * A, pe);
+        pos += pe;
+        // Attention over time within each agent, residual + LayerNorm.
+        time_attn.forward(pos, H, pos, H, A, nullptr, att_t);
+        sum_t = pos + att_t;
+        ln_time.forward(sum_t, xt);
+        // Attention over agents at each time step (inactive agents masked as keys).
+        detail::agent_to_time_major(xt, B, n, H, xt_tm);
+        agent_key_mask.resize((size_t)H * A);
+        for (int b = 0; b < B; ++b)
+            for (int t = 0; t < H; ++t)
+                for (int i = 0; i < n; ++i) agent_key_mask[((size_t)b * H + t) * n + i] = batch.agent_mask[(size_t)b * n + i];
+        agent_attn.forward(xt_tm, n, xt_tm, n, B * H, agent_key_mask.data(), att_a_tm);
+        detail::time_to_agent_major(att_a_tm, B, n, H, att_a);
+        sum_a = xt + att_a;
+        ln_agent.forward(sum_a, xat);
+        // X~ = X_at + MLP(X_at).
+        mlp1.forward(xat, m1);
+        mlp_act.forward(m1, m1a);
+        mlp2.forward(m1a, m2);
+        out = xat + m2;
+    }
+    // d_out (D, H*A) -> parameter gradients (the window's own gradient is not needed).
+    void backward(const Mat& d_out, const SceneBatch& batch) {
+        const int B = batch.B, n = batch.n, A = B * n, H = config.horizon;
+        if (config.processor == Processor::LE) {
+            in_proj.backward(in, d_out, d_x);
+            return;
+        }
+        mlp2.backward(m1a, d_out, d_m1a);
+        mlp_act.backward(m1, d_m1a, d_m1);
+        mlp1.backward(xat, d_m1, d_xat);
+        d_xat += d_out;
+        ln_agent.backward(sum_a, d_xat, d_sum_a);
+        detail::agent_to_time_major(d_sum_a, B, n, H, d_tm);
+        agent_attn.backward(xt_tm, n, xt_tm, n, B * H, agent_key_mask.data(), d_tm, d_q, d_kv);
+        d_q += d_kv;
+        detail::time_to_agent_major(d_q, B, n, H, d_xt);
+        d_xt += d_sum_a;
+        ln_time.backward(sum_t, d_xt, d_sum_t);
+        time_attn.backward(pos, H, pos, H, A, nullptr, d_sum_t, d_q, d_kv);
+        d_pos = d_sum_t + d_q + d_kv;
+        pe_agent.backward(slot_ids.data(), H * A, d_pos);
+        pe_time.backward(time_ids.data(), H * A, d_pos);
+        in_proj.backward(in, d_pos, d_x);
+    }
+};
+
+// ---------------------------------------------------------------------------------------------
+// The denoiser eps_theta(X^k, k, c) (or x0_theta with Prediction::X0): ContextEncoder ->
+// ctx (D, A); cond = Mish(ctx + StepEmbedding(k)) (D, A); TrajectoryProcessor -> FilmUNet
+// conditioned on cond. Not copyable (layers point into its ParamStore); movable; clone() copies.
 class MadbpModel {
 public:
     ModelConfig config;
@@ -1865,10 +2459,11 @@ public:
     MadbpModel(const MadbpModel&) = delete;
     MadbpModel& operator=(const MadbpModel&) = delete;
 
-    // An independent copy (same config, parameters and mode) with its own workspaces.
+    // An independent copy (same config, parameters, state and mode) with its own workspaces.
     MadbpModel clone() const {
         MadbpModel m(config);
         m.params->value = params->value;
+        m.params->state = params->state;
         m.set_training(training_);
         return m;
     }
@@ -1876,107 +2471,48 @@ public:
     // Training mode: BatchNorm uses (masked) batch statistics and updates its running ones.
     void set_training(bool on) {
         training_ = on;
-        for (auto& b : net_.down) b.set_training(on);
-        for (auto& b : net_.up) b.set_training(on);
-        net_.mid.set_training(on);
+        unet_.set_training(on);
     }
     bool training() const { return training_; }
 
-    // Context encoder (SPEC 5): grid CNN tokens, pose MLP, agent-count embedding, fused by
-    // attention into ctx (D, A). Keeps `batch` (by reference) for denoise and backward.
+    // Encodes the scene conditioning into ctx (D, A). Keeps `batch` (by reference) for denoise
+    // and backward.
     void encode_context(const SceneBatch& batch) {
-        const ModelConfig& c = config;
         check_batch(batch);
         batch_ = &batch;
-        const int B = batch.B, n = batch.n, G = c.grid, P = c.image_tokens();
-        auto& e = enc_;
-        e.g1.forward(batch.grid, G, G, e.g1o);
-        e.r1.forward(e.g1o, e.g1a);
-        e.g2.forward(e.g1a, G / 2, G / 2, e.g2o);
-        e.r2.forward(e.g2o, e.g2a);
-        if (batch.shared_grid) {  // one map for every scene: encode it once, give each scene a copy
-            e.g3.forward(e.g2a, G / 4, G / 4, e.img_one);
-            e.img.resize(c.dim, (long)P * B);
-            for (int b = 0; b < B; ++b) e.img.middleCols((long)b * P, P) = e.img_one;
-        } else {
-            e.g3.forward(e.g2a, G / 4, G / 4, e.img);
-        }
-        e.img_ids.resize((size_t)P * B);
-        for (int j = 0; j < P * B; ++j) e.img_ids[j] = j % P;
-        e.pe_img.forward(e.img_ids.data(), P * B, e.tmp);
-        e.img += e.tmp;
-        e.pose1.forward(batch.pose, e.p1);
-        e.pose_act.forward(e.p1, e.p1a);
-        e.pose2.forward(e.p1a, e.pose_tok);
-        if (c.local_grid > 0) {  // each agent's own crop of the map, added to its pose token
-            const int Gl = c.local_grid;
-            e.l1.forward(batch.local, Gl, Gl, e.l1o);
-            e.r3.forward(e.l1o, e.l1a);
-            e.l2.forward(e.l1a, Gl / 2, Gl / 2, e.l2o);
-            e.r4.forward(e.l2o, e.l2a);
-            e.l3.forward(e.l2a, Gl / 4, Gl / 4, e.local_tok);
-            e.pose_tok += e.local_tok;
-        }
-        e.count_ids.assign(batch.count.begin(), batch.count.end());
-        e.count_emb.forward(e.count_ids.data(), B, e.count_tok);
-        // Keys of scene b: its P image tokens, its n pose tokens (inactive masked), its count token.
-        const int Lk = P + n + 1;
-        e.kv.resize(c.dim, (long)Lk * B);
-        e.kv_mask.resize((size_t)Lk * B);
-        for (int b = 0; b < B; ++b) {
-            const long o = (long)b * Lk;
-            e.kv.middleCols(o, P) = e.img.middleCols((long)b * P, P);
-            e.kv.middleCols(o + P, n) = e.pose_tok.middleCols((long)b * n, n);
-            e.kv.col(o + P + n) = e.count_tok.col(b);
-            for (int j = 0; j < P; ++j) e.kv_mask[o + j] = 1.0f;
-            for (int i = 0; i < n; ++i) e.kv_mask[o + P + i] = batch.agent_mask[(size_t)b * n + i];
-            e.kv_mask[o + P + n] = 1.0f;
-        }
-        e.fuse.forward(e.pose_tok, n, e.kv, Lk, B, e.kv_mask.data(), e.att);
-        e.pre_ln = e.pose_tok + e.att;
-        e.ln.forward(e.pre_ln, ctx_);
-        make_column_masks(batch);  // for the U-Net's BatchNorm; constant while the batch is
+        context_.forward(batch, ctx_);
+        unet_.set_agent_mask(batch.agent_mask);  // constant while the batch is
     }
 
-    // eps (2, H*A) = eps_theta(x_noisy (2, H*A), k (B) diffusion step per scene, context).
-    void denoise(const Mat& x_noisy, const int* k, Mat& eps) {
-        const ModelConfig& c = config;
+    // out (2, H*A) = the network's prediction (eps or x0) for x_noisy (2, H*A) at diffusion
+    // step k (B, one per scene), given the last encoded context.
+    void denoise(const Mat& x_noisy, const int* k, Mat& out) {
         MADBP_ASSERT(batch_ != nullptr);
         const SceneBatch& batch = *batch_;
-        const int B = batch.B, n = batch.n, A = B * n, H = c.horizon;
-        MADBP_ASSERT(x_noisy.rows() == 2 && x_noisy.cols() == (long)H * A);
-        // Diffusion-step embedding, added to each agent's context, then FiLM at every level.
-        auto& s = step_;
-        s.k.resize(B);
-        for (int b = 0; b < B; ++b) s.k[b] = (float)k[b];
-        sinusoidal_embedding(s.k.data(), B, c.dim, s.sin);
-        s.l1.forward(s.sin, s.h1);
-        s.act.forward(s.h1, s.h1a);
-        s.l2.forward(s.h1a, s.tok);
-        s.cond_pre.resize(c.dim, A);
-        for (int a = 0; a < A; ++a) s.cond_pre.col(a) = ctx_.col(a) + s.tok.col(a / n);
-        s.cond_act.forward(s.cond_pre, cond_);
-        process(x_noisy, batch);
-        unet_forward(proc_.out, eps);
+        const int B = batch.B, n = batch.n, A = B * n;
+        MADBP_ASSERT(x_noisy.rows() == 2 && x_noisy.cols() == (long)config.horizon * A);
+        // The step embedding is added to each agent's context, then FiLM at every level.
+        step_.forward(k, B, step_tok_);
+        cond_pre_.resize(config.dim, A);
+        for (int a = 0; a < A; ++a) cond_pre_.col(a) = ctx_.col(a) + step_tok_.col(a / n);
+        cond_act_.forward(cond_pre_, cond_);
+        processor_.forward(x_noisy, batch);
+        unet_.forward(processor_.out, cond_, B, n, out);
     }
 
     // Backward of the last encode_context + denoise: ADDS every parameter's gradient.
-    void backward(const Mat& d_eps) {
-        const ModelConfig& c = config;
+    void backward(const Mat& d_out) {
         const SceneBatch& batch = *batch_;
         const int B = batch.B, n = batch.n, A = B * n;
-        d_cond_.setZero(c.dim, A);
-        unet_backward(d_eps, d_proc_);
-        process_backward(d_proc_, batch);
+        d_cond_.setZero(config.dim, A);
+        unet_.backward(processor_.out, cond_, B, n, d_out, d_proc_, d_cond_);
+        processor_.backward(d_proc_, batch);
         // cond = Mish(ctx + step_tok[scene]).
-        auto& s = step_;
-        s.cond_act.backward(s.cond_pre, d_cond_, s.d_pre);
-        s.d_tok.setZero(c.dim, B);
-        for (int a = 0; a < A; ++a) s.d_tok.col(a / n) += s.d_pre.col(a);
-        s.l2.backward(s.h1a, s.d_tok, s.d_h1a);
-        s.act.backward(s.h1, s.d_h1a, s.d_h1);
-        s.l1.backward(s.sin, s.d_h1, s.d_sin);
-        context_backward(s.d_pre, batch);
+        cond_act_.backward(cond_pre_, d_cond_, d_pre_);
+        d_tok_.setZero(config.dim, B);
+        for (int a = 0; a < A; ++a) d_tok_.col(a / n) += d_pre_.col(a);
+        step_.backward(d_tok_);
+        context_.backward(batch, d_pre_);
     }
 
     const Mat& context() const { return ctx_; }
@@ -1984,109 +2520,25 @@ public:
 private:
     bool training_ = true;
     const SceneBatch* batch_ = nullptr;
-    Mat ctx_, cond_, d_cond_, d_proc_;
-    std::vector<float> colmask_[5];  // per U-Net resolution: (T_l * A) active-agent column masks
+    TrajectoryProcessor processor_;
+    ContextEncoder context_;
+    StepEmbedding step_;
+    FilmUNet unet_;
+    Mish cond_act_;
+    Mat ctx_;                      // (D, A) encoded context
+    Mat step_tok_, d_tok_;         // (D, B)
+    Mat cond_pre_, cond_, d_cond_, d_pre_;  // (D, A)
+    Mat d_proc_;                   // (D, H*A)
 
-    struct Encoder {
-        Conv2d g1, g2, g3, l1, l2, l3;
-        ReLU r1, r2, r3, r4;
-        Embedding pe_img, count_emb;
-        Linear pose1, pose2;
-        Mish pose_act;
-        MultiHeadAttention fuse;
-        LayerNorm ln;
-        std::vector<int> img_ids, count_ids;
-        std::vector<float> kv_mask;
-        Mat g1o, g1a, g2o, g2a, img, img_one, tmp, local_tok, p1, p1a, pose_tok, count_tok, kv, att, pre_ln, l1o, l1a, l2o, l2a;
-        Mat d_l1o, d_l1a, d_l2o, d_l2a, d_local;
-        Mat d_pre, d_pose, d_kv, d_img, d_g2a, d_g2o, d_g1a, d_g1o, d_grid, d_p1a, d_p1, d_posein, d_count;
-    } enc_;
-    struct StepEmbed {
-        Linear l1, l2;
-        Mish act, cond_act;
-        std::vector<float> k;
-        Mat sin, h1, h1a, tok, cond_pre;
-        Mat d_pre, d_tok, d_h1a, d_h1, d_sin;
-    } step_;
-    struct Processor_ {
-        Linear in_proj, mlp1, mlp2;
-        Embedding pe_agent, pe_time;
-        MultiHeadAttention time_attn, agent_attn;
-        LayerNorm ln_time, ln_agent;
-        Mish mlp_act;
-        std::vector<int> slot_ids, time_ids;
-        std::vector<float> agent_key_mask;
-        Mat in, proj, pe, pos, att_t, sum_t, xt, xt_tm, att_a_tm, att_a, sum_a, xat, m1, m1a, m2, out;
-        Mat d_xat, d_m2, d_m1a, d_m1, d_tmp, d_sum_a, d_xt, d_tm, d_q, d_kv, d_sum_t, d_pos, d_x;
-    } proc_;
-    struct UNet {
-        std::vector<ConvBlock> down, up;
-        ConvBlock mid;
-        std::vector<MaxPool1d> pool;
-        std::vector<Upsample1d> upsample;
-        Conv1d decoder;
-        std::vector<Mat> skip, pooled, cat, up_out, up_buf;
-        Mat mid_out;
-        Mat d_cur, d_cat, d_up, d_prev, d_pool, d_in;
-        std::vector<Mat> d_skip;
-    } net_;
-
+    // Parameters are created in this order (it fixes the initial weights for a seed).
     void build(uint64_t seed) {
         Rng rng(seed);
         ParamStore& ps = *params;
         const ModelConfig& c = config;
-        const int D = c.dim;
-        auto& p = proc_;
-        p.in_proj = Linear(ps, "aap.in_proj", 4, D, rng);
-        if (c.processor == Processor::AAP) {
-            p.pe_agent = Embedding(ps, "aap.pe_agent", c.n_max, D, rng);
-            p.pe_time = Embedding(ps, "aap.pe_time", c.horizon, D, rng);
-            p.time_attn = MultiHeadAttention(ps, "aap.time_attn", D, c.heads, rng);
-            p.ln_time = LayerNorm(ps, "aap.ln_time", D, rng);
-            p.agent_attn = MultiHeadAttention(ps, "aap.agent_attn", D, c.heads, rng);
-            p.ln_agent = LayerNorm(ps, "aap.ln_agent", D, rng);
-            p.mlp1 = Linear(ps, "aap.mlp1", D, 2 * D, rng);
-            p.mlp2 = Linear(ps, "aap.mlp2", 2 * D, D, rng);
-        }
-        auto& e = enc_;
-        e.g1 = Conv2d(ps, "ctx.grid1", 1, 16, 3, 2, 1, rng);
-        e.g2 = Conv2d(ps, "ctx.grid2", 16, 32, 3, 2, 1, rng);
-        e.g3 = Conv2d(ps, "ctx.grid3", 32, D, 3, 2, 1, rng);
-        e.pe_img = Embedding(ps, "ctx.pe_img", c.image_tokens(), D, rng);
-        e.pose1 = Linear(ps, "ctx.pose1", 4, D, rng);
-        e.pose2 = Linear(ps, "ctx.pose2", D, D, rng);
-        if (c.local_grid > 0) {
-            e.l1 = Conv2d(ps, "ctx.local1", 1, 8, 3, 2, 1, rng);
-            e.l2 = Conv2d(ps, "ctx.local2", 8, 16, 3, 2, 1, rng);
-            e.l3 = Conv2d(ps, "ctx.local3", 16, D, c.local_grid / 4, 1, 0, rng);  // the whole 4x4-reduced crop -> one token
-        }
-        e.count_emb = Embedding(ps, "ctx.count", c.n_max + 1, D, rng);
-        e.fuse = MultiHeadAttention(ps, "ctx.fuse", D, c.heads, rng);
-        e.ln = LayerNorm(ps, "ctx.ln", D, rng);
-        step_.l1 = Linear(ps, "step.l1", D, 2 * D, rng);
-        step_.l2 = Linear(ps, "step.l2", 2 * D, D, rng);
-        auto& u = net_;
-        const int L = c.levels();
-        int cin = D;
-        for (int l = 0; l < L; ++l) {
-            u.down.emplace_back(ps, "unet.down" + std::to_string(l), cin, c.channels[l], c.kernel, D, rng);
-            cin = c.channels[l];
-        }
-        u.mid = ConvBlock(ps, "unet.mid", cin, cin, c.kernel, D, rng);
-        u.up.resize(L);
-        for (int l = L - 1; l >= 0; --l) {
-            u.up[l] = ConvBlock(ps, "unet.up" + std::to_string(l), cin + c.channels[l], c.channels[l], c.kernel, D, rng);
-            cin = c.channels[l];
-        }
-        u.decoder = Conv1d(ps, "unet.decoder", c.channels[0], 2, 1, rng);
-        u.pool.resize(L);
-        u.upsample.resize(L);
-        u.skip.resize(L);
-        u.pooled.resize(L);
-        u.cat.resize(L);
-        u.up_out.resize(L);
-        u.up_buf.resize(L);
-        u.d_skip.resize(L);
+        processor_ = TrajectoryProcessor(ps, c, rng);
+        context_ = ContextEncoder(ps, c, rng);
+        step_ = StepEmbedding(ps, "step", c.dim, rng);
+        unet_ = FilmUNet(ps, "unet", "", c.dim, 2, c.channels, c.kernel, c.dim, c.horizon, /*attention heads*/ 0, rng);
     }
 
     void check_batch(const SceneBatch& b) const {
@@ -2105,164 +2557,6 @@ private:
             if (b.slot[a] < 0 || b.slot[a] >= config.n_max) throw std::invalid_argument("scene batch: slot outside [0, n_max)");
         if (!b.pose.allFinite()) throw std::invalid_argument("scene batch: pose (positions or goals) is not finite");
     }
-
-    void make_column_masks(const SceneBatch& batch) {
-        const int A = batch.agents();
-        for (int l = 0; l <= config.levels(); ++l) {
-            const int T = config.horizon >> l;
-            colmask_[l].resize((size_t)T * A);
-            for (int a = 0; a < A; ++a)
-                for (int t = 0; t < T; ++t) colmask_[l][(size_t)a * T + t] = batch.agent_mask[a];
-        }
-    }
-
-    // The trajectory processor (SPEC 5): x (2, H*A) -> out (D, H*A).
-    void process(const Mat& x, const SceneBatch& batch) {
-        const int B = batch.B, n = batch.n, A = B * n, H = config.horizon;
-        auto& p = proc_;
-        // in_ (4, H*A): the window and, on every column, the agent's current position.
-        p.in.resize(4, (long)H * A);
-        p.in.topRows(2) = x;
-        for (int a = 0; a < A; ++a) p.in.block(2, (long)a * H, 2, H).colwise() = batch.pose.col(a).head<2>();
-        p.in_proj.forward(p.in, p.proj);
-        if (config.processor == Processor::LE) {
-            p.out = p.proj;
-            return;
-        }
-        p.slot_ids.resize((size_t)H * A);
-        p.time_ids.resize((size_t)H * A);
-        for (int a = 0; a < A; ++a)
-            for (int t = 0; t < H; ++t) {
-                p.slot_ids[(size_t)a * H + t] = batch.slot[a];
-                p.time_ids[(size_t)a * H + t] = t;
-            }
-        p.pe_agent.forward(p.slot_ids.data(), H * A, p.pe);
-        p.pos = p.proj + p.pe;
-        p.pe_time.forward(p.time_ids.data(), H * A, p.pe);
-        p.pos += p.pe;
-        // Attention over time within each agent, residual + LayerNorm.
-        p.time_attn.forward(p.pos, H, p.pos, H, A, nullptr, p.att_t);
-        p.sum_t = p.pos + p.att_t;
-        p.ln_time.forward(p.sum_t, p.xt);
-        // Attention over agents at each time step (inactive agents masked as keys).
-        detail::agent_to_time_major(p.xt, B, n, H, p.xt_tm);
-        p.agent_key_mask.resize((size_t)H * A);
-        for (int b = 0; b < B; ++b)
-            for (int t = 0; t < H; ++t)
-                for (int i = 0; i < n; ++i) p.agent_key_mask[((size_t)b * H + t) * n + i] = batch.agent_mask[(size_t)b * n + i];
-        p.agent_attn.forward(p.xt_tm, n, p.xt_tm, n, B * H, p.agent_key_mask.data(), p.att_a_tm);
-        detail::time_to_agent_major(p.att_a_tm, B, n, H, p.att_a);
-        p.sum_a = p.xt + p.att_a;
-        p.ln_agent.forward(p.sum_a, p.xat);
-        // X~ = X_at + MLP(X_at).
-        p.mlp1.forward(p.xat, p.m1);
-        p.mlp_act.forward(p.m1, p.m1a);
-        p.mlp2.forward(p.m1a, p.m2);
-        p.out = p.xat + p.m2;
-    }
-    void process_backward(const Mat& d_out, const SceneBatch& batch) {
-        const int B = batch.B, n = batch.n, A = B * n, H = config.horizon;
-        auto& p = proc_;
-        if (config.processor == Processor::LE) {
-            p.in_proj.backward(p.in, d_out, p.d_x);
-            return;
-        }
-        p.mlp2.backward(p.m1a, d_out, p.d_m1a);
-        p.mlp_act.backward(p.m1, p.d_m1a, p.d_m1);
-        p.mlp1.backward(p.xat, p.d_m1, p.d_xat);
-        p.d_xat += d_out;
-        p.ln_agent.backward(p.sum_a, p.d_xat, p.d_sum_a);
-        detail::agent_to_time_major(p.d_sum_a, B, n, H, p.d_tm);
-        p.agent_attn.backward(p.xt_tm, n, p.xt_tm, n, B * H, p.agent_key_mask.data(), p.d_tm, p.d_q, p.d_kv);
-        p.d_q += p.d_kv;
-        detail::time_to_agent_major(p.d_q, B, n, H, p.d_xt);
-        p.d_xt += p.d_sum_a;
-        p.ln_time.backward(p.sum_t, p.d_xt, p.d_sum_t);
-        p.time_attn.backward(p.pos, H, p.pos, H, A, nullptr, p.d_sum_t, p.d_q, p.d_kv);
-        p.d_pos = p.d_sum_t + p.d_q + p.d_kv;
-        p.pe_agent.backward(p.slot_ids.data(), H * A, p.d_pos);
-        p.pe_time.backward(p.time_ids.data(), H * A, p.d_pos);
-        p.in_proj.backward(p.in, p.d_pos, p.d_x);
-    }
-
-    // Inputs of the down and up blocks, as forward left them.
-    const Mat& down_input(int l) const { return l == 0 ? proc_.out : net_.pooled[l - 1]; }
-    const Mat& up_input(int l) const { return l == config.levels() - 1 ? net_.mid_out : net_.up_out[l + 1]; }
-
-    void unet_forward(const Mat& x, Mat& eps) {
-        auto& u = net_;
-        const int L = config.levels(), H = config.horizon;
-        MADBP_ASSERT(&x == &proc_.out);
-        for (int l = 0; l < L; ++l) {
-            u.down[l].forward(down_input(l), H >> l, cond_, colmask_[l].data(), u.skip[l]);
-            u.pool[l].forward(u.skip[l], H >> l, u.pooled[l]);
-        }
-        u.mid.forward(u.pooled[L - 1], H >> L, cond_, colmask_[L].data(), u.mid_out);
-        for (int l = L - 1; l >= 0; --l) {
-            u.upsample[l].forward(up_input(l), u.up_buf[l]);  // nearest x2, then the skip below it
-            const long cu = u.up_buf[l].rows(), cs = u.skip[l].rows();
-            u.cat[l].resize(cu + cs, u.up_buf[l].cols());
-            u.cat[l].topRows(cu) = u.up_buf[l];
-            u.cat[l].bottomRows(cs) = u.skip[l];
-            u.up[l].forward(u.cat[l], H >> l, cond_, colmask_[l].data(), u.up_out[l]);
-        }
-        u.decoder.forward(u.up_out[0], H, eps);
-    }
-    void unet_backward(const Mat& d_eps, Mat& d_x) {
-        auto& u = net_;
-        const int L = config.levels(), H = config.horizon;
-        u.decoder.backward(u.up_out[0], H, d_eps, u.d_cur);
-        for (int l = 0; l < L; ++l) {
-            u.up[l].backward(u.cat[l], H >> l, cond_, colmask_[l].data(), u.d_cur, u.d_cat, d_cond_);
-            const long cu = up_input(l).rows(), cs = u.skip[l].rows();
-            u.d_skip[l] = u.d_cat.bottomRows(cs);
-            u.d_up = u.d_cat.topRows(cu);
-            u.upsample[l].backward(up_input(l), u.d_up, u.d_cur);
-        }
-        u.mid.backward(u.pooled[L - 1], H >> L, cond_, colmask_[L].data(), u.d_cur, u.d_pool, d_cond_);
-        for (int l = L - 1; l >= 0; --l) {
-            u.pool[l].backward(u.skip[l], H >> l, u.d_pool, u.d_in);
-            u.d_skip[l] += u.d_in;
-            u.down[l].backward(down_input(l), H >> l, cond_, colmask_[l].data(), u.d_skip[l], u.d_pool, d_cond_);
-        }
-        d_x = u.d_pool;
-    }
-
-    // d_ctx (D, A) -> parameter gradients of the context encoder.
-    void context_backward(const Mat& d_ctx, const SceneBatch& batch) {
-        const int B = batch.B, n = batch.n, G = config.grid, P = config.image_tokens(), Lk = P + n + 1;
-        auto& e = enc_;
-        if (batch.shared_grid) throw std::logic_error("context backward: training needs one grid per scene (shared_grid is for planning)");
-        e.ln.backward(e.pre_ln, d_ctx, e.d_pre);
-        e.fuse.backward(e.pose_tok, n, e.kv, Lk, B, e.kv_mask.data(), e.d_pre, e.d_pose, e.d_kv);
-        e.d_pose += e.d_pre;
-        e.d_img.resize(config.dim, (long)P * B);
-        e.d_count.resize(config.dim, B);
-        for (int b = 0; b < B; ++b) {
-            const long o = (long)b * Lk;
-            e.d_img.middleCols((long)b * P, P) = e.d_kv.middleCols(o, P);
-            e.d_pose.middleCols((long)b * n, n) += e.d_kv.middleCols(o + P, n);
-            e.d_count.col(b) = e.d_kv.col(o + P + n);
-        }
-        e.count_emb.backward(e.count_ids.data(), B, e.d_count);
-        e.pose2.backward(e.p1a, e.d_pose, e.d_p1a);
-        e.pose_act.backward(e.p1, e.d_p1a, e.d_p1);
-        e.pose1.backward(batch.pose, e.d_p1, e.d_posein);
-        if (config.local_grid > 0) {
-            const int Gl = config.local_grid;
-            e.l3.backward(e.l2a, Gl / 4, Gl / 4, e.d_pose, e.d_l2a);
-            e.r4.backward(e.l2o, e.d_l2a, e.d_l2o);
-            e.l2.backward(e.l1a, Gl / 2, Gl / 2, e.d_l2o, e.d_l1a);
-            e.r3.backward(e.l1o, e.d_l1a, e.d_l1o);
-            e.l1.backward(batch.local, Gl, Gl, e.d_l1o, e.d_local);
-        }
-        e.pe_img.backward(e.img_ids.data(), P * B, e.d_img);
-        e.g3.backward(e.g2a, G / 4, G / 4, e.d_img, e.d_g2a);
-        e.r2.backward(e.g2o, e.d_g2a, e.d_g2o);
-        e.g2.backward(e.g1a, G / 2, G / 2, e.d_g2o, e.d_g1a);
-        e.r1.backward(e.g1o, e.d_g1a, e.d_g1o);
-        e.g1.backward(batch.grid, G, G, e.d_g1o, e.d_grid);
-    }
 };
 
 // Model checkpoints (SPEC 11): the parameters as safetensors, the ModelConfig in __metadata__
@@ -2275,6 +2569,7 @@ inline void save_model(const std::string& path, const MadbpModel& model, std::ma
 }
 inline MadbpModel load_model(const std::string& path) {
     SafeTensors st = load_safetensors(path);
+    const ParamBudget budget(st.values(), path);  // the declared config may need no more values than the file holds
     MadbpModel model(ModelConfig::from_metadata(st.metadata, path));
     read_param_tensors(st, *model.params);
     model.set_training(false);
@@ -2325,19 +2620,6 @@ struct SamplerConfig {
     float goal_reach = 0.55f;    // "within reach": distance to goal in world units at most this (see default_goal_reach)
 };
 
-// About the distance a window covers at the expert's cruising pace (0.55 units for 15 steps):
-// goals nearer than this get the window's end pinned to them (training and sampling agree).
-inline float default_goal_reach(const ModelConfig& c) { return (float)(0.55 * (c.horizon - 1) * c.waypoint_stride / 15.0); }
-
-// Where the sampler pins the window of agent a (normalised displacement units): t = 0 always
-// (zero displacement); t = H-1 to the goal when `goal_inpaint` and the goal is within reach.
-inline bool goal_within_reach(const SceneBatch& batch, int a, const ModelConfig& c, float reach_world, Eigen::Vector2f* end) {
-    const Eigen::Vector2f to_goal = (batch.pose.col(a).tail<2>() - batch.pose.col(a).head<2>()) * c.position_scale;
-    if (to_goal.norm() > reach_world) return false;
-    if (end) *end = to_goal / c.window_scale;
-    return true;
-}
-
 // Draws windows for a batch of scenes with DDIM: x (2, H*A) starts as N(0, I); after every
 // step the pinned waypoints are re-imposed and inactive agents are zeroed (paper Alg. 2).
 // `model.encode_context(batch)` is called here. Output: normalised displacements.
@@ -2357,7 +2639,7 @@ void sample_windows(Denoiser& model, const NoiseSchedule& schedule, const SceneB
             if (batch.agent_mask[a] == 0) { w.setZero(); continue; }
             w.col(0).setZero();
             Eigen::Vector2f end;
-            if (sc.goal_inpaint && goal_within_reach(batch, a, c, sc.goal_reach, &end)) w.col(H - 1) = end;
+            if (sc.goal_inpaint && end_pinned(batch, a, c, sc.goal_reach, &end)) w.col(H - 1) = end;
         }
     };
     impose();
@@ -2405,6 +2687,7 @@ public:
     }
     const ModelConfig& config() const { return model_.config; }
     MadbpModel& model() { return model_; }
+    const SceneBatch& last_scene_batch() const { return batch_; }  // what the model saw in the last plan
     void reseed(uint64_t seed) { rng_.reseed(seed); }
 
     // A window for all present agents of `world`: waypoints for steps t+1 .. t+(H-1)*stride
@@ -2448,12 +2731,7 @@ public:
             }
             for (int k = 0; k < per_scene; ++k) {
                 const Agent& a = world.agents()[members_[k]];
-                const int col = b * per_scene + k;
-                batch_.agent_mask[col] = 1;
-                batch_.slot[col] = k;
-                batch_.pose.col(col) << (float)(a.pos.x / c.position_scale), (float)(a.pos.y / c.position_scale),
-                    (float)(a.goal.x / c.position_scale), (float)(a.goal.y / c.position_scale);
-                fill_local_crop(batch_, col, world.map(), a.pos, c);
+                encode_agent(batch_, b * per_scene + k, /*slot*/ k, a.pos, a.goal, world.map(), c);
             }
             batch_.count[b] = per_scene;
         }
@@ -2484,19 +2762,10 @@ private:
 
     // Rasterizes the map only when it changed since the last plan.
     void update_grid(const Map& map) {
-        if (grid_valid_ && same_map(map, grid_map_)) return;
-        Grid g = occupancy_grid(map, model_.config.grid);
-        for (int j = 0; j < model_.config.grid * model_.config.grid; ++j) batch_.grid(0, j) = g.cells[j];
+        if (grid_valid_ && map == grid_map_) return;
+        encode_map(batch_, 0, map, model_.config);
         grid_map_ = map;
         grid_valid_ = true;
-    }
-    static bool same_map(const Map& a, const Map& b) {
-        if (a.half_size != b.half_size || a.discs.size() != b.discs.size() || a.boxes.size() != b.boxes.size()) return false;
-        for (size_t i = 0; i < a.discs.size(); ++i)
-            if (!(a.discs[i].c == b.discs[i].c) || a.discs[i].r != b.discs[i].r) return false;
-        for (size_t i = 0; i < a.boxes.size(); ++i)
-            if (!(a.boxes[i].lo == b.boxes[i].lo) || !(a.boxes[i].hi == b.boxes[i].hi)) return false;
-        return true;
     }
 };
 

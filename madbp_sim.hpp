@@ -110,6 +110,33 @@ inline void require_finite(double v, const std::string& field) {
     if (!std::isfinite(v)) throw std::invalid_argument(field + ": value is not finite (" + std::to_string(v) + ")");
 }
 
+// Limits on every size that comes from a file, a flag or the API, checked before anything is
+// allocated; a refusal names the limit. docs/limits.md lists these and the limits of madbp.hpp
+// (checkpoints, model configuration) and madbp_train.hpp (datasets).
+constexpr double kMaxHalfSize = 100;           // world half-size, world units (World, make_map, scenes, datasets)
+constexpr int kMaxObstacles = 4096;            // discs + boxes of one map (World, make_map, scenes, datasets)
+constexpr int kMaxSceneAgents = 1024;          // 'agent' lines of one scene
+constexpr size_t kMaxSceneBytes = 1 << 20;     // size of a scene file or text, bytes
+constexpr int kMaxAgentId = (1 << 30) - 1;     // largest agent id World::add_agent accepts or hands out
+constexpr int kExpertMaxGridSide = 192;        // guided expert: planning grid side, cells (coarser cells beyond)
+constexpr int kExpertMaxHorizon = 256;         // guided expert: world steps planned ahead (plus extra_horizon)
+constexpr double kMaxSvgPixels = 4096;         // side of a rendered picture, pixels (larger worlds are drawn smaller)
+
+// `s` for an error message: bytes outside printable ASCII as \xNN (a NUL no longer cuts the
+// message short), at most `max` input bytes, then "...".
+inline std::string printable(const std::string& s, size_t max = 64) {
+    std::string out;
+    for (size_t i = 0; i < s.size() && i < max; ++i) {
+        const unsigned char c = (unsigned char)s[i];
+        if (c >= 0x20 && c < 0x7f) { out += (char)c; continue; }
+        char b[8];
+        std::snprintf(b, sizeof b, "\\x%02x", c);
+        out += b;
+    }
+    if (s.size() > max) out += "...";
+    return out;
+}
+
 }  // namespace madbp
 
 // ============================ WORLD AND CONTROLLERS BELOW ===================================
@@ -119,7 +146,7 @@ inline void require_finite(double v, const std::string& field) {
 //   2 maps: make_map("empty" | "obstacles" | "barrier")                          [2]
 //   3 the world: WorldConfig, Agent, Metrics, World (add/remove agents, step)    [2]
 //   4 spawning: spawn_agents, make_random_world, WorldBatch                      [2]
-//   5 occupancy grid: Grid, occupancy_grid                                       [2]
+//   5 occupancy grid: Grid, occupancy_grid, local_crop                           [2, 5]
 //   6 scene files: Scene, parse_scene, load_scene, scene_text, make_world        [2]
 //   7 controllers: Policy, StepModel                                             [3]
 //   8 CLF-QP: ClfQpParams, clf_qp_solve, clf_qp_action, ClfQp                    [3.1]
@@ -130,6 +157,9 @@ inline void require_finite(double v, const std::string& field) {
 //  13 SVG: render_svg, write_text_file                                           [2]
 
 #include <algorithm>
+#include <cerrno>
+#include <cstring>
+#include <fcntl.h>
 #include <fstream>
 #include <functional>
 #include <limits>
@@ -137,6 +167,7 @@ inline void require_finite(double v, const std::string& field) {
 #include <memory>
 #include <queue>
 #include <sstream>
+#include <sys/stat.h>
 #include <vector>
 
 namespace madbp {
@@ -183,6 +214,10 @@ struct Map {
     std::vector<Disc> discs;
     std::vector<Box> boxes;
 };
+inline bool operator==(const Disc& a, const Disc& b) { return a.c == b.c && a.r == b.r; }
+inline bool operator==(const Box& a, const Box& b) { return a.lo == b.lo && a.hi == b.hi; }
+inline bool operator==(const Map& a, const Map& b) { return a.half_size == b.half_size && a.discs == b.discs && a.boxes == b.boxes; }
+inline bool operator!=(const Map& a, const Map& b) { return !(a == b); }
 
 // Closest point of `b` to `p` (p itself when inside).
 inline Vec2 closest_point(const Box& b, Vec2 p) { return {std::clamp(p.x, b.lo.x, b.hi.x), std::clamp(p.y, b.lo.y, b.hi.y)}; }
@@ -258,6 +293,8 @@ inline bool inside_obstacle(const Map& map, Vec2 p) {
 inline Map make_map(const std::string& name, Rng& rng, double half_size = 1.2) {
     if (!(half_size > 0.5) || !std::isfinite(half_size))
         throw std::invalid_argument("half_size: must be a finite number > 0.5 (got " + std::to_string(half_size) + ")");
+    if (half_size > kMaxHalfSize)
+        throw std::invalid_argument("half_size: " + std::to_string(half_size) + " exceeds the limit kMaxHalfSize = " + std::to_string(kMaxHalfSize));
     double scale = half_size / 1.2;
     Map map;
     map.half_size = half_size;
@@ -265,6 +302,9 @@ inline Map make_map(const std::string& name, Rng& rng, double half_size = 1.2) {
     if (name == "obstacles") {
         // 5 discs of radius 0.1 (VMAS "flocking"), >= 0.15 apart surface to surface.
         int count = (int)std::lround(5 * scale * scale);
+        if (count > kMaxObstacles)
+            throw std::invalid_argument("obstacles: half_size " + std::to_string(half_size) + " needs " + std::to_string(count) +
+                                        " discs, over the limit kMaxObstacles = " + std::to_string(kMaxObstacles));
         double lim = 0.8 * scale, r = 0.1, min_gap = 0.15;
         for (int tries = 0; (int)map.discs.size() < count; ++tries) {
             if (tries > 100000) throw std::runtime_error("obstacles: could not place " + std::to_string(count) + " discs");
@@ -330,6 +370,12 @@ public:
     explicit World(Map map = Map{}, WorldConfig cfg = WorldConfig{}) : map_(std::move(map)), cfg_(cfg) {
         require_finite(map_.half_size, "map.half_size");
         if (!(map_.half_size > 0)) throw std::invalid_argument("map.half_size: must be > 0");
+        if (map_.half_size > kMaxHalfSize)
+            throw std::invalid_argument("map.half_size: " + std::to_string(map_.half_size) + " exceeds the limit kMaxHalfSize = " +
+                                        std::to_string(kMaxHalfSize));
+        if (map_.discs.size() + map_.boxes.size() > (size_t)kMaxObstacles)
+            throw std::invalid_argument("map: " + std::to_string(map_.discs.size() + map_.boxes.size()) +
+                                        " obstacles exceed the limit kMaxObstacles = " + std::to_string(kMaxObstacles));
         for (size_t i = 0; i < map_.discs.size(); ++i) {
             const Disc& d = map_.discs[i];
             std::string f = "map.discs[" + std::to_string(i) + "]";
@@ -349,11 +395,15 @@ public:
 
     // Adds an agent at `start` (at rest) heading for `goal`; returns its id. Both points must
     // be finite and the disc inside the world walls. `id` < 0 picks the next free id; a given
-    // id must not be in use (std::invalid_argument otherwise).
+    // id must be in [0, kMaxAgentId] and not in use (std::invalid_argument otherwise).
     int add_agent(Vec2 start, Vec2 goal, int id = -1) {
         check_point(start, "start", cfg_.radius);
         check_point(goal, "goal", cfg_.radius);
+        if (id > kMaxAgentId)
+            throw std::invalid_argument("add_agent: id " + std::to_string(id) + " exceeds the limit kMaxAgentId = " + std::to_string(kMaxAgentId));
         if (id >= 0 && index_of(id) >= 0) throw std::invalid_argument("add_agent: duplicate agent id " + std::to_string(id));
+        if (id < 0 && next_id_ > kMaxAgentId)
+            throw std::invalid_argument("add_agent: no free id left below the limit kMaxAgentId = " + std::to_string(kMaxAgentId));
         if (id < 0) id = next_id_;
         next_id_ = std::max(next_id_, id + 1);
         agents_.push_back({id, start, {0, 0}, goal});
@@ -646,6 +696,19 @@ inline Grid occupancy_grid(const World& world, int size = 32, bool agents = fals
     return g;
 }
 
+// A robot's own view of the static map: Gl x Gl cells of width 2 * extent / Gl centred on p
+// (world units), row-major from the lowest y, written to out (Gl * Gl). A cell is 1 when an
+// obstacle or wall surface is within half a cell of its centre (so thin walls are never
+// missed) or it lies beyond the walls.
+inline void local_crop(const Map& map, Vec2 p, int Gl, double extent, float* out) {
+    const double w = 2 * extent / Gl;
+    for (int row = 0; row < Gl; ++row)
+        for (int col = 0; col < Gl; ++col) {
+            const Vec2 c{p.x - extent + (col + 0.5) * w, p.y - extent + (row + 0.5) * w};
+            out[row * Gl + col] = static_clearance(map, c) < 0.5 * w ? 1.0f : 0.0f;
+        }
+}
+
 // =============================================================================================
 // Section 6. Scene files (SPEC 2)
 // =============================================================================================
@@ -662,13 +725,18 @@ struct Scene {
 //   disc X Y R                  static disc obstacle
 //   box X0 Y0 X1 Y1             static axis-aligned box, X0 < X1, Y0 < Y1
 //   agent SX SY GX GY           one robot: start, goal
-// '#' starts a comment. Errors are std::invalid_argument("<source>:<line>: <why>"). Checks:
-// numbers finite, radii > 0, starts and goals inside the walls (|x|,|y| <= H - 0.1), starts
-// >= 0.2 apart (no overlap), goals >= 0.2 apart, starts and goals >= 0.1 clear of every
-// obstacle surface. A start may coincide with another agent's goal (swaps).
+// '#' starts a comment. Errors are std::invalid_argument("<source>:<line>: <why>"), quoting
+// input with odd bytes escaped (printable). Checks: numbers finite, radii > 0, H <= kMaxHalfSize,
+// at most kMaxObstacles discs + boxes, kMaxSceneAgents agents and kMaxSceneBytes of text, starts
+// and goals inside the walls (|x|,|y| <= H - 0.1), starts >= 0.2 apart (no overlap), goals >= 0.2
+// apart, starts and goals >= 0.1 clear of every obstacle surface. A start may coincide with
+// another agent's goal (swaps).
 inline Scene parse_scene(const std::string& text, const std::string& source = "scene", double radius = 0.1) {
     Scene scene;
     std::vector<int> agent_lines;
+    if (text.size() > kMaxSceneBytes)
+        throw std::invalid_argument(source + ": " + std::to_string(text.size()) + " bytes exceed the limit kMaxSceneBytes = " +
+                                    std::to_string(kMaxSceneBytes));
     std::istringstream in(text);
     std::string line;
     int line_no = 0;
@@ -686,29 +754,33 @@ inline Scene parse_scene(const std::string& text, const std::string& source = "s
         if (tok.empty()) continue;
         if (!header) {
             if (tok.size() != 2 || tok[0] != "madbp-scene") fail(line_no, "expected the header 'madbp-scene 1'");
-            if (tok[1] != "1") fail(line_no, "unsupported scene version '" + tok[1] + "' (this reader knows 1)");
+            if (tok[1] != "1") fail(line_no, "unsupported scene version '" + printable(tok[1]) + "' (this reader knows 1)");
             header = true;
             continue;
         }
         const std::string& kw = tok[0];
         size_t want = kw == "world" ? 1 : kw == "disc" ? 3 : kw == "box" ? 4 : kw == "agent" ? 4 : 0;
-        if (want == 0) fail(line_no, "unknown keyword '" + kw + "' (expected world, disc, box or agent)");
+        if (want == 0) fail(line_no, "unknown keyword '" + printable(kw) + "' (expected world, disc, box or agent)");
         if (tok.size() != want + 1)
             fail(line_no, "'" + kw + "' takes " + std::to_string(want) + " numbers, got " + std::to_string(tok.size() - 1));
         double v[4];
         for (size_t k = 0; k < want; ++k) {
             size_t pos = 0;
             try { v[k] = std::stod(tok[k + 1], &pos); } catch (...) { pos = 0; }
-            if (pos != tok[k + 1].size()) fail(line_no, "'" + tok[k + 1] + "' is not a number");
-            if (!std::isfinite(v[k])) fail(line_no, "'" + tok[k + 1] + "' is not finite");
+            if (pos != tok[k + 1].size()) fail(line_no, "'" + printable(tok[k + 1]) + "' is not a number");
+            if (!std::isfinite(v[k])) fail(line_no, "'" + printable(tok[k + 1]) + "' is not finite");
         }
         if (kw == "world") {
             if (world_seen) fail(line_no, "'world' given twice");
             if (!scene.starts.empty() || !scene.map.discs.empty() || !scene.map.boxes.empty())
                 fail(line_no, "'world' must come before obstacles and agents");
             if (!(v[0] > 2 * radius)) fail(line_no, "world half-size must be > " + std::to_string(2 * radius));
+            if (v[0] > kMaxHalfSize)
+                fail(line_no, "world half-size " + printable(tok[1]) + " exceeds the limit kMaxHalfSize = " + std::to_string(kMaxHalfSize));
             scene.map.half_size = v[0];
             world_seen = true;
+        } else if (kw != "agent" && scene.map.discs.size() + scene.map.boxes.size() >= (size_t)kMaxObstacles) {
+            fail(line_no, "more than kMaxObstacles = " + std::to_string(kMaxObstacles) + " discs and boxes");
         } else if (kw == "disc") {
             if (!(v[2] > 0)) fail(line_no, "disc radius must be > 0");
             scene.map.discs.push_back({{v[0], v[1]}, v[2]});
@@ -716,6 +788,8 @@ inline Scene parse_scene(const std::string& text, const std::string& source = "s
             if (!(v[0] < v[2] && v[1] < v[3])) fail(line_no, "box needs x0 < x1 and y0 < y1");
             scene.map.boxes.push_back({{v[0], v[1]}, {v[2], v[3]}});
         } else {
+            if (scene.starts.size() >= (size_t)kMaxSceneAgents)
+                fail(line_no, "more than kMaxSceneAgents = " + std::to_string(kMaxSceneAgents) + " agents");
             scene.starts.push_back({v[0], v[1]});
             scene.goals.push_back({v[2], v[3]});
             agent_lines.push_back(line_no);
@@ -725,14 +799,14 @@ inline Scene parse_scene(const std::string& text, const std::string& source = "s
     if (scene.starts.empty()) fail(line_no, "no 'agent' line");
     // Validation needs the whole map, so it runs after parsing; errors name the agent's line.
     double lim = scene.map.half_size - radius;
+    Map obstacles_only = scene.map;
+    obstacles_only.half_size = 1e9;  // walls are checked separately below
     for (size_t i = 0; i < scene.starts.size(); ++i) {
         for (int which = 0; which < 2; ++which) {
             Vec2 p = which == 0 ? scene.starts[i] : scene.goals[i];
             const char* name = which == 0 ? "start" : "goal";
             if (std::fabs(p.x) > lim || std::fabs(p.y) > lim)
                 fail(agent_lines[i], std::string(name) + " is outside the world (|x|, |y| must be <= " + std::to_string(lim) + ")");
-            Map obstacles_only = scene.map;
-            obstacles_only.half_size = 1e9;  // walls were checked just above
             if (static_clearance(obstacles_only, p) < radius) fail(agent_lines[i], std::string(name) + " overlaps an obstacle");
             const std::vector<Vec2>& same = which == 0 ? scene.starts : scene.goals;
             for (size_t j = 0; j < i; ++j)
@@ -742,12 +816,43 @@ inline Scene parse_scene(const std::string& text, const std::string& source = "s
     }
     return scene;
 }
+namespace detail {
+// Reads the whole of `path` (a regular file or a pipe) into `out` (std::string or
+// std::vector<uint8_t>). Refuses a directory or a device, and a file of more than `max_bytes`
+// (`limit` names the limit), before reading it; std::runtime_error naming the path otherwise.
+template <class Bytes>
+inline void read_bounded(const std::string& path, uint64_t max_bytes, const std::string& limit, Bytes& out) {
+    const int fd = ::open(path.c_str(), O_RDONLY | O_CLOEXEC);
+    if (fd < 0) throw std::runtime_error(path + ": cannot open: " + std::strerror(errno));
+    struct FdCloser { int fd; ~FdCloser() { ::close(fd); } } closer{fd};
+    struct stat sb;
+    if (::fstat(fd, &sb) != 0) throw std::runtime_error(path + ": cannot stat: " + std::strerror(errno));
+    if (S_ISDIR(sb.st_mode)) throw std::runtime_error(path + ": is a directory, not a file");
+    if (!S_ISREG(sb.st_mode) && !S_ISFIFO(sb.st_mode)) throw std::runtime_error(path + ": is a device, not a regular file");
+    const auto too_big = [&](uint64_t n) {
+        return std::runtime_error(path + ": " + (S_ISREG(sb.st_mode) ? std::to_string(n) : "more than " + std::to_string(max_bytes)) +
+                                  " bytes exceed the limit " + limit + " = " + std::to_string(max_bytes));
+    };
+    if (S_ISREG(sb.st_mode) && (uint64_t)sb.st_size > max_bytes) throw too_big((uint64_t)sb.st_size);
+    out.clear();
+    if (S_ISREG(sb.st_mode)) out.reserve((size_t)sb.st_size);
+    char buf[1 << 16];
+    for (;;) {
+        const ssize_t got = ::read(fd, buf, sizeof buf);
+        if (got < 0 && errno == EINTR) continue;
+        if (got < 0) throw std::runtime_error(path + ": read failed: " + std::strerror(errno));
+        if (got == 0) break;
+        if (out.size() + (uint64_t)got > max_bytes) throw too_big(out.size() + (uint64_t)got);
+        out.insert(out.end(), buf, buf + got);
+    }
+}
+}  // namespace detail
+
+// Reads and parses a scene file (at most kMaxSceneBytes; a directory or device is refused).
 inline Scene load_scene(const std::string& path) {
-    std::ifstream f(path);
-    if (!f) throw std::runtime_error(path + ": cannot open scene file");
-    std::stringstream ss;
-    ss << f.rdbuf();
-    return parse_scene(ss.str(), path);
+    std::string text;
+    detail::read_bounded(path, kMaxSceneBytes, "kMaxSceneBytes", text);
+    return parse_scene(text, path);
 }
 // The scene format of a world's current problem (agents at their current positions).
 inline std::string scene_text(const World& world) {
@@ -1229,14 +1334,21 @@ inline EvalResult evaluate(const EvalConfig& c, const PolicyFactory& factory) {
 // =============================================================================================
 
 // Static clearance (distance from the cell centre to the nearest obstacle or wall surface) on
-// a square grid over the world; cell k is (row k / n, column k % n), row 0 = lowest y.
+// a square grid over the world; cell k is (row k / n, column k % n), row 0 = lowest y. The
+// side is the world's width in cells of about `cell_wanted`, at most `max_side` (>= 2): a larger
+// world gets coarser cells, `stretch` = (side wanted) / n > 1 times as wide (1 when not capped).
 struct ClearanceGrid {
     int n = 0;
-    double cell = 0.04, half = 1.2;
+    double cell = 0.04, half = 1.2, stretch = 1;
     std::vector<float> clear;
     ClearanceGrid() = default;
-    ClearanceGrid(const Map& map, double cell_wanted) : half(map.half_size) {
-        n = std::max(2, (int)std::lround(2 * half / cell_wanted));
+    ClearanceGrid(const Map& map, double cell_wanted, int max_side = kExpertMaxGridSide) : half(map.half_size) {
+        if (!(cell_wanted > 0) || !std::isfinite(cell_wanted) || max_side < 2)
+            throw std::invalid_argument("ClearanceGrid: needs cell > 0 and max_side >= 2 (got " + std::to_string(cell_wanted) + ", " +
+                                        std::to_string(max_side) + ")");
+        const double wanted = std::max(2.0, std::round(2 * half / cell_wanted));  // a double: a huge world cannot wrap
+        n = (int)std::min(wanted, (double)max_side);
+        stretch = wanted > n ? wanted / n : 1.0;
         cell = 2 * half / n;
         clear.resize((size_t)n * n);
         for (int k = 0; k < n * n; ++k) clear[k] = (float)static_clearance(map, centre(k));
@@ -1276,8 +1388,12 @@ inline std::vector<int> wavefront(const ClearanceGrid& cg, int goal_cell, double
 // and a strong classical row. Every `replan_every` steps it plans all agents one after the
 // other in priority order (prioritized planning, a space-time A* per agent):
 //   - space: a grid of cell `cell` (one cell per step = 0.36 units/s along an axis), cells
-//     closer than `inflate` to an obstacle or wall excluded;
-//   - time: the agent's path is a cell per step; waiting is a move;
+//     closer than `inflate` to an obstacle or wall excluded; at most kExpertMaxGridSide cells
+//     a side (half-size <= 3.45 at the default cell): a larger world gets coarser cells, each
+//     taking `stretch` world steps, with waypoints interpolated along the path between them;
+//   - time: the agent's path is a cell per step; waiting is a move; plans look at most
+//     kExpertMaxHorizon + extra_horizon world steps ahead, so memory is bounded at any world
+//     size and step limit;
 //   - heuristic: the wavefront (BFS) steps to the goal around the static map, exact when no
 //     other agent is in the way;
 //   - conflicts: the planned centres of higher-priority agents reserve a disc of radius
@@ -1307,6 +1423,8 @@ class GuidedExpert : public Policy {
 public:
     explicit GuidedExpert(const Map& map, ExpertParams p = ExpertParams{}) : prm_(p), grid_(map, p.cell) {
         if (prm_.replan_every < 1) throw std::invalid_argument("ExpertParams.replan_every: must be >= 1");
+        if (prm_.extra_horizon < 0 || prm_.extra_horizon > kExpertMaxHorizon)
+            throw std::invalid_argument("ExpertParams.extra_horizon: must be in [0, kExpertMaxHorizon = " + std::to_string(kExpertMaxHorizon) + "]");
     }
 
     std::vector<Vec2> act(const World& world) override {
@@ -1337,6 +1455,8 @@ public:
     double plan_ms() const override { return plans_ ? total_ms_ / plans_ : 0; }
     // The current plan: waypoints of every agent from the step it was made.
     const Plan& plan() const { return plan_; }
+    // The planning grid (its side n <= kExpertMaxGridSide).
+    const ClearanceGrid& grid() const { return grid_; }
 
 private:
     ExpertParams prm_;
@@ -1382,7 +1502,9 @@ private:
         const auto& ag = world.agents();
         const int n = (int)ag.size(), N = grid_.n * grid_.n;
         const double r = world.config().radius;
-        int T = std::max(1, world.config().max_steps - world.t()) + prm_.extra_horizon;
+        // World steps planned (waypoints), and grid steps searched: one per `stretch` world steps.
+        const int T_world = std::min(std::max(1, world.config().max_steps - world.t()), kExpertMaxHorizon) + prm_.extra_horizon;
+        const int T = grid_.stretch > 1 ? std::max(1, (int)std::ceil(T_world / grid_.stretch)) : T_world;
         reserved_.assign((size_t)(T + 1) * N, 0);
         // Priority order.
         std::vector<int> order(n);
@@ -1430,12 +1552,21 @@ private:
                         if (slot < 255) slot++;
                     }
                 }
-            // Waypoints: cell centres, the exact goal in the goal cell.
+            // Waypoints: cell centres, the exact goal in the goal cell; on a coarsened grid,
+            // points along the path at 1 / stretch cells per world step.
             int goal_cell = grid_.index(ag[i].goal);
+            auto point = [&](int step) {
+                int c = path[std::min(step, (int)path.size() - 1)];
+                return c == goal_cell ? ag[i].goal : grid_.centre(c);
+            };
             std::vector<Vec2> w;
-            for (int t = 1; t <= T; ++t) {
-                int c = path[std::min(t, (int)path.size() - 1)];
-                w.push_back(c == goal_cell ? ag[i].goal : grid_.centre(c));
+            for (int t = 1; t <= T_world; ++t) {
+                if (grid_.stretch == 1) { w.push_back(point(t)); continue; }
+                const double at = t / grid_.stretch;
+                const int k0 = (int)std::floor(at);
+                const double frac = at - k0;
+                const Vec2 a = point(k0);
+                w.push_back(frac > 0 ? a + (point(k0 + 1) - a) * frac : a);
             }
             plan_.ids[i] = ag[i].id;
             plan_.waypoints[i] = std::move(w);
@@ -1518,7 +1649,7 @@ private:
 // <animate>, plays in browsers) over faint trajectories. `title` is written at the top.
 struct SvgOptions {
     bool animate = false;
-    double pixels_per_unit = 200;  // scale, > 0
+    double pixels_per_unit = 200;  // scale, > 0; lowered so that the picture is at most kMaxSvgPixels wide
     std::string title;
 };
 namespace detail {
@@ -1535,7 +1666,9 @@ inline std::string fmt(double v) {
 }  // namespace detail
 inline std::string render_svg(const EpisodeLog& log, const SvgOptions& opt = SvgOptions{}) {
     MADBP_ASSERT(!log.frames.empty());
-    double h = log.map.half_size, S = opt.pixels_per_unit, top = opt.title.empty() ? 0 : 24;
+    if (!(log.map.half_size > 0) || !std::isfinite(log.map.half_size) || !(opt.pixels_per_unit > 0) || !std::isfinite(opt.pixels_per_unit))
+        throw std::invalid_argument("render_svg: needs a finite half_size > 0 and pixels_per_unit > 0");
+    double h = log.map.half_size, S = std::min(opt.pixels_per_unit, kMaxSvgPixels / (2 * h)), top = opt.title.empty() ? 0 : 24;
     auto X = [&](double x) { return detail::fmt((x + h) * S); };
     auto Y = [&](double y) { return detail::fmt((h - y) * S + top); };
     auto L = [&](double l) { return detail::fmt(l * S); };

@@ -137,6 +137,12 @@ inline DemoSet collect_demonstrations(const CollectConfig& c, const Demonstrator
 //   u32 boxes + boxes * (f64 x0, y0, x1, y1), u32 agents, u32 steps, u8 success,
 //   goals agents*(f32 x, y), pos and vel (steps+1)*agents*(f32 x, y), act steps*agents*(f32 x, y).
 //   A string is u32 length + bytes. Written atomically (temp file + rename).
+// Limits (docs/limits.md), checked before allocating: the file <= kMaxDatasetBytes; per episode
+// half_size <= kMaxHalfSize, discs + boxes <= kMaxObstacles, 1 <= agents <= kMaxDatasetAgents,
+// 1 <= steps <= kMaxDatasetSteps; every count must also fit the bytes left in the file.
+constexpr uint64_t kMaxDatasetBytes = 1ull << 30;  // 1 GiB (the shipped model's dataset is ~60 MB)
+constexpr int kMaxDatasetAgents = 1024;
+constexpr int kMaxDatasetSteps = 100000;
 namespace detail {
 struct ByteWriter {
     std::vector<uint8_t> bytes;
@@ -207,10 +213,63 @@ inline void save_demos(const std::string& path, const DemoSet& set) {
     write_file_atomic(path, w.bytes);
 }
 
-inline DemoSet load_demos(const std::string& path) {
-    const std::vector<uint8_t> bytes = read_file(path);
-    detail::ByteReader r{bytes.data(), bytes.size(), path};
-    if (bytes.size() < 8 || std::memcmp(bytes.data(), "MADBPDS1", 8) != 0) r.fail("not a madbp dataset (magic 'MADBPDS1' missing)");
+// Semantic checks of a dataset (load_demos runs them with n_max = kMaxDatasetAgents; `madbp
+// train` again with the model's n_max): per episode 1 <= agents <= n_max, 1 <= steps, array sizes
+// that match, half_size in (0.2, kMaxHalfSize], discs with r > 0 and centres inside the world,
+// boxes with x0 < x1, y0 < y1 inside the world, every value finite, every position and goal
+// inside the world (|x|, |y| <= half_size). std::runtime_error naming `source`, the episode, the
+// field, the index and the value.
+inline void validate_demos(const DemoSet& set, int n_max = kMaxDatasetAgents, const std::string& source = "dataset") {
+    auto num = [](double v) { char b[32]; std::snprintf(b, sizeof b, "%.6g", v); return std::string(b); };
+    for (size_t e = 0; e < set.episodes.size(); ++e) {
+        const Demonstration& d = set.episodes[e];
+        const std::string ep = source + ": episode " + std::to_string(e) + ": ";
+        auto fail = [&](const std::string& what) { throw std::runtime_error(ep + what); };
+        const double h = d.map.half_size, tol = 1e-9 * (std::isfinite(h) ? std::fabs(h) : 1.0);
+        if (!(h > 0.2 && h <= kMaxHalfSize)) fail("half_size " + num(h) + " outside (0.2, kMaxHalfSize = " + num(kMaxHalfSize) + "]");
+        if (d.agents < 1 || d.agents > n_max) fail("agents = " + std::to_string(d.agents) + " outside [1, n_max = " + std::to_string(n_max) + "]");
+        if (d.steps < 1) fail("steps = " + std::to_string(d.steps) + " (must be >= 1)");
+        const size_t frames = (size_t)(d.steps + 1) * d.agents;
+        if (d.goals.size() != (size_t)d.agents || d.pos.size() != frames || d.vel.size() != frames || d.act.size() != (size_t)d.steps * d.agents)
+            fail("array sizes do not match agents = " + std::to_string(d.agents) + ", steps = " + std::to_string(d.steps));
+        if (d.map.discs.size() + d.map.boxes.size() > (size_t)kMaxObstacles)
+            fail(std::to_string(d.map.discs.size() + d.map.boxes.size()) + " obstacles exceed kMaxObstacles = " + std::to_string(kMaxObstacles));
+        auto inside = [&](Vec2 p) { return std::fabs(p.x) <= h + tol && std::fabs(p.y) <= h + tol; };
+        auto point = [&](Vec2 p) { return "(" + num(p.x) + ", " + num(p.y) + ")"; };
+        for (size_t i = 0; i < d.map.discs.size(); ++i) {
+            const Disc& o = d.map.discs[i];
+            if (!std::isfinite(o.c.x) || !std::isfinite(o.c.y) || !(o.r > 0) || !std::isfinite(o.r))
+                fail("disc " + std::to_string(i) + ": needs a finite centre and radius > 0 (r = " + num(o.r) + ")");
+            if (!inside(o.c)) fail("disc " + std::to_string(i) + ": centre " + point(o.c) + " outside the world (half_size " + num(h) + ")");
+        }
+        for (size_t i = 0; i < d.map.boxes.size(); ++i) {
+            const Box& b = d.map.boxes[i];
+            if (!(b.lo.x < b.hi.x && b.lo.y < b.hi.y)) fail("box " + std::to_string(i) + ": needs x0 < x1 and y0 < y1");
+            if (!inside(b.lo) || !inside(b.hi))
+                fail("box " + std::to_string(i) + ": " + point(b.lo) + " - " + point(b.hi) + " outside the world (half_size " + num(h) + ")");
+        }
+        auto check_points = [&](const std::vector<Vec2>& v, const char* field) {
+            for (size_t k = 0; k < v.size(); ++k)
+                if (!inside(v[k]))
+                    fail(std::string(field) + "[" + std::to_string(k) + "] = " + point(v[k]) + " outside the world (|x|, |y| <= half_size " + num(h) + ")");
+        };
+        check_points(d.goals, "goals");
+        check_points(d.pos, "pos");
+        auto check_finite = [&](const std::vector<Vec2>& v, const char* field) {
+            for (size_t k = 0; k < v.size(); ++k)
+                if (!std::isfinite(v[k].x) || !std::isfinite(v[k].y)) fail(std::string(field) + "[" + std::to_string(k) + "] is not finite");
+        };
+        check_finite(d.vel, "vel");
+        check_finite(d.act, "act");
+    }
+}
+
+// Parses and validates (validate_demos) a dataset held in memory; std::runtime_error naming
+// `path` and the field on anything else.
+inline DemoSet parse_demos(const uint8_t* data, size_t size, const std::string& path = "<memory>") {
+    detail::ByteReader r{data, size, path};
+    if (size > kMaxDatasetBytes) r.fail(std::to_string(size) + " bytes exceed the limit kMaxDatasetBytes = " + std::to_string(kMaxDatasetBytes));
+    if (size < 8 || std::memcmp(data, "MADBPDS1", 8) != 0) r.fail("not a madbp dataset (magic 'MADBPDS1' missing)");
     r.p += 8;
     r.left -= 8;
     const uint32_t version = r.get<uint32_t>("version");
@@ -218,14 +277,17 @@ inline DemoSet load_demos(const std::string& path) {
     DemoSet set;
     set.demonstrator = r.str("demonstrator", 4096);
     const uint32_t count = r.get<uint32_t>("episode count");
-    if (count > r.left / 16) r.fail("episode count " + std::to_string(count) + " does not fit the file");
-    set.episodes.resize(count);
+    if (count > r.left / 77) r.fail("episode count " + std::to_string(count) + " does not fit the file");  // >= 77 bytes each
     for (uint32_t e = 0; e < count; ++e) {
-        Demonstration& d = set.episodes[e];
+        Demonstration& d = set.episodes.emplace_back();
         d.map_name = r.str("map_name", 256);
         d.map.half_size = r.finite(r.get<double>("half_size"), "half_size");
-        if (!(d.map.half_size > 0.2 && d.map.half_size < 1000)) r.fail("episode " + std::to_string(e) + ": half_size out of range");
+        if (!(d.map.half_size > 0.2 && d.map.half_size <= kMaxHalfSize))
+            r.fail("episode " + std::to_string(e) + ": half_size " + std::to_string(d.map.half_size) + " outside (0.2, kMaxHalfSize = " +
+                   std::to_string(kMaxHalfSize) + "]");
         const uint32_t discs = r.get<uint32_t>("discs");
+        if (discs > (uint32_t)kMaxObstacles)
+            r.fail("episode " + std::to_string(e) + ": discs = " + std::to_string(discs) + " exceed kMaxObstacles = " + std::to_string(kMaxObstacles));
         if (discs * 24ull > r.left) r.fail("episode " + std::to_string(e) + ": file ends inside 'discs' (truncated)");
         for (uint32_t i = 0; i < discs; ++i) {
             Disc o;
@@ -235,6 +297,9 @@ inline DemoSet load_demos(const std::string& path) {
             d.map.discs.push_back(o);
         }
         const uint32_t boxes = r.get<uint32_t>("boxes");
+        if (discs + (uint64_t)boxes > (uint64_t)kMaxObstacles)
+            r.fail("episode " + std::to_string(e) + ": discs + boxes = " + std::to_string(discs + (uint64_t)boxes) + " exceed kMaxObstacles = " +
+                   std::to_string(kMaxObstacles));
         if (boxes * 32ull > r.left) r.fail("episode " + std::to_string(e) + ": file ends inside 'boxes' (truncated)");
         for (uint32_t i = 0; i < boxes; ++i) {
             Box b;
@@ -245,8 +310,15 @@ inline DemoSet load_demos(const std::string& path) {
             d.map.boxes.push_back(b);
         }
         const uint32_t agents = r.get<uint32_t>("agents"), steps = r.get<uint32_t>("steps");
-        if (agents < 1 || agents > 1024) r.fail("episode " + std::to_string(e) + ": agents = " + std::to_string(agents) + " outside [1, 1024]");
-        if (steps > 100000) r.fail("episode " + std::to_string(e) + ": steps = " + std::to_string(steps) + " is impossible");
+        if (agents < 1 || agents > (uint32_t)kMaxDatasetAgents)
+            r.fail("episode " + std::to_string(e) + ": agents = " + std::to_string(agents) + " outside [1, kMaxDatasetAgents = " +
+                   std::to_string(kMaxDatasetAgents) + "]");
+        if (steps < 1 || steps > (uint32_t)kMaxDatasetSteps)
+            r.fail("episode " + std::to_string(e) + ": steps = " + std::to_string(steps) + " outside [1, kMaxDatasetSteps = " +
+                   std::to_string(kMaxDatasetSteps) + "]");
+        if (24ull * agents * (steps + 1ull) + 1 > r.left)  // success, goals, pos, vel, act
+            r.fail("episode " + std::to_string(e) + ": file ends inside its " + std::to_string(steps) + " steps of " + std::to_string(agents) +
+                   " agents (truncated)");
         d.agents = (int)agents;
         d.steps = (int)steps;
         d.success = r.get<uint8_t>("success") != 0;
@@ -256,7 +328,13 @@ inline DemoSet load_demos(const std::string& path) {
         r.vecs(d.act, (size_t)steps * agents, "act");
     }
     if (r.left != 0) r.fail(std::to_string(r.left) + " trailing bytes after the last episode");
+    validate_demos(set, kMaxDatasetAgents, path);
     return set;
+}
+// Reads a dataset file (at most kMaxDatasetBytes; a directory or device is refused).
+inline DemoSet load_demos(const std::string& path) {
+    const std::vector<uint8_t> bytes = read_file(path, kMaxDatasetBytes, "kMaxDatasetBytes");
+    return parse_demos(bytes.data(), bytes.size(), path);
 }
 
 // =============================================================================================
@@ -448,8 +526,8 @@ inline void make_train_batch(const DemoSet& demos, const std::vector<WindowRef>&
         n_slots = std::max(n_slots, agents);
     }
     if (n_slots > mc.n_max) throw std::invalid_argument("train: windows with " + std::to_string(n_slots) + " agents exceed n_max");
-    const int B = tc.batch, n = n_slots, H = mc.horizon, A = B * n, G = mc.grid;
-    const float s = mc.position_scale, ws = mc.window_scale, reach = tc.goal_reach >= 0 ? tc.goal_reach : default_goal_reach(mc);
+    const int B = tc.batch, n = n_slots, H = mc.horizon, A = B * n;
+    const float ws = mc.window_scale, reach = tc.goal_reach >= 0 ? tc.goal_reach : default_goal_reach(mc);
     const int stride = mc.waypoint_stride;
     tb.scene.resize(B, n, mc);
     tb.x0.setZero(2, (long)H * A);
@@ -464,8 +542,7 @@ inline void make_train_batch(const DemoSet& demos, const std::vector<WindowRef>&
         const double fx = tc.augment && rng.uniform() < 0.5 ? -1 : 1, fy = tc.augment && rng.uniform() < 0.5 ? -1 : 1;
         auto mir = [&](Vec2 p) { return Vec2{p.x * fx, p.y * fy}; };
         tb.maps[b] = mirrored(d.map, fx, fy);
-        Grid g = occupancy_grid(tb.maps[b], G);
-        for (int j = 0; j < G * G; ++j) tb.scene.grid(0, (long)b * G * G + j) = g.cells[j];
+        encode_map(tb.scene, b, tb.maps[b], mc);
         std::iota(order.begin(), order.end(), 0);
         for (int i = d.agents - 1; i > 0; --i) std::swap(order[i], order[rng.uniform_int(i + 1)]);
         std::iota(slots.begin(), slots.end(), 0);
@@ -473,12 +550,9 @@ inline void make_train_batch(const DemoSet& demos, const std::vector<WindowRef>&
         tb.scene.count[b] = d.agents;
         for (int i = 0; i < d.agents; ++i) {
             const int a = b * n + i, src = order[i];
-            tb.scene.agent_mask[a] = 1;
-            tb.scene.slot[a] = slots[i];
             const Vec2 start = mir(d.position(ref.t, src)), goal = mir(d.goals[src]);
-            tb.scene.pose.col(a) << (float)(start.x / s), (float)(start.y / s), (float)(goal.x / s), (float)(goal.y / s);
+            encode_agent(tb.scene, a, slots[i], start, goal, tb.maps[b], mc);
             tb.origin.col(a) << (float)start.x, (float)start.y;
-            fill_local_crop(tb.scene, a, tb.maps[b], start, mc);
             for (int t = 0; t < H; ++t) {
                 const Vec2 p = mir(d.position(ref.t + t * stride, src)) - start;
                 tb.x0.col((long)a * H + t) << (float)(p.x / ws), (float)(p.y / ws);
@@ -486,9 +560,9 @@ inline void make_train_batch(const DemoSet& demos, const std::vector<WindowRef>&
             const Vec2 hg = mir(d.position(ref.t + H * stride, src)) - start;
             tb.horizon_goal.col(a) << (float)(hg.x / ws), (float)(hg.y / ws);
             tb.pinned[(size_t)a * H] = 1;
-            // As the sampler: the end is pinned when the goal is within reach (to the
-            // demonstrated end, which is where the demonstrator took the agent toward it).
-            if (norm(goal - start) <= reach) tb.pinned[(size_t)a * H + H - 1] = 1;
+            // The end is pinned as the sampler pins it (to the demonstrated end, which is where
+            // the demonstrator took the agent toward its goal).
+            if (end_pinned(tb.scene, a, mc, reach)) tb.pinned[(size_t)a * H + H - 1] = 1;
         }
         for (int i = d.agents; i < n; ++i) tb.scene.slot[b * n + i] = slots[i];  // unused, distinct
     }
@@ -773,9 +847,11 @@ inline TrainReport train(const DemoSet& demos, MadbpModel& model, const TrainCon
     while (step < tc.steps) {
         const int n_curr = std::max(smallest_team, curriculum_agents(step, tc));
         std::string error;
-        // Sync before the parallel region: replica 0's BatchNorm writes its running statistics
-        // (part of the parameter vector) during the forward pass.
-        for (int r = 1; r < R; ++r) replica[r]->params->value = model.params->value;
+        // Every replica starts the step from the main model's weights and running statistics.
+        for (int r = 1; r < R; ++r) {
+            replica[r]->params->value = model.params->value;
+            replica[r]->params->state = model.params->state;
+        }
 #pragma omp parallel for num_threads(R) schedule(static, 1)
         for (int r = 0; r < R; ++r) {
             try {
@@ -799,13 +875,11 @@ inline TrainReport train(const DemoSet& demos, MadbpModel& model, const TrainCon
             }
             ParamStore& main = *model.params;
             main.grad *= (float)share[0].batch / tc.batch;
-            for (const auto& e : main.entries)
-                if (!e.trainable) main.value.segment(e.offset, e.numel()) *= (float)share[0].batch / tc.batch;
+            main.state *= (float)share[0].batch / tc.batch;
             for (int r = 1; r < R; ++r) {
                 const float w = (float)share[r].batch / tc.batch;
                 main.grad += w * replica[r]->params->grad;
-                for (const auto& e : main.entries)
-                    if (!e.trainable) main.value.segment(e.offset, e.numel()) += w * replica[r]->params->value.segment(e.offset, e.numel());
+                main.state += w * replica[r]->params->state;
             }
         }
         if (!std::isfinite(l.total)) throw std::runtime_error("train: loss became non-finite at step " + std::to_string(step));
@@ -1776,35 +1850,6 @@ inline void condition_keep_mask(int B, float dropout, Rng& rng, std::vector<floa
     for (int b = 0; b < B; ++b) keep[b] = rng.uniform() < dropout ? 0.0f : 1.0f;
 }
 
-// Self-attention over the n agents of a scene at each time step, pre-LayerNorm, residual:
-// x (C, T*A) agent-major (A = B*n) -> y (C, T*A) = x + MHA(LN(x)) with the agents of scene b at
-// time t as queries and keys (no mask: the team is fixed). backward(x, T, B, n, dy, dx).
-struct AgentAttention {
-    LayerNorm ln;
-    MultiHeadAttention att;
-    Mat x_tm, z, a_tm, a, d_tm, d_a, d_q, d_kv, d_z;
-
-    AgentAttention() = default;
-    AgentAttention(ParamStore& ps, const std::string& name, int C, int heads, Rng& rng)
-        : ln(ps, name + ".ln", C, rng), att(ps, name + ".attn", C, heads, rng) {}
-    void forward(const Mat& x, int T, int B, int n, Mat& y) {
-        MADBP_ASSERT(x.cols() == (long)T * B * n);
-        detail::agent_to_time_major(x, B, n, T, x_tm);
-        ln.forward(x_tm, z);
-        att.forward(z, n, z, n, B * T, nullptr, a_tm);
-        detail::time_to_agent_major(a_tm, B, n, T, a);
-        y = x + a;
-    }
-    void backward(const Mat& x, int T, int B, int n, const Mat& dy, Mat& dx) {
-        detail::agent_to_time_major(dy, B, n, T, d_tm);
-        att.backward(z, n, z, n, B * T, nullptr, d_tm, d_q, d_kv);
-        d_q += d_kv;
-        ln.backward(x_tm, d_q, d_z);
-        detail::time_to_agent_major(d_z, B, n, T, dx);
-        dx += dy;
-    }
-};
-
 // Inverse dynamics: (o_t, o_t+1) (O, N) each -> a_t (2, N), an MLP [o_t; o_t+1] (2O) ->
 // hidden -> hidden -> 2 with Tanh (Mlp). backward(da) adds the parameter gradients.
 struct InverseDynamics {
@@ -1843,48 +1888,44 @@ public:
     MadiffModel clone() const {
         MadiffModel m(config);
         m.params->value = params->value;
+        m.params->state = params->state;
         m.set_training(training_);
         return m;
     }
     long parameter_count() const { return params->trainable_count(); }
     void set_training(bool on) {
         training_ = on;
-        for (auto& b : net_.down) b.set_training(on);
-        for (auto& b : net_.up) b.set_training(on);
-        net_.mid.set_training(on);
+        unet_.set_training(on);
     }
     bool training() const { return training_; }
 
-    // Per-feature limits of the observations (norm.lo, norm.hi (O), non-trainable).
+    // Per-feature limits of the observations (norm.lo, norm.hi (O), state).
     void set_limits(const Vec& lo, const Vec& hi) {
         MADBP_ASSERT(lo.size() == kMappoObs && hi.size() == kMappoObs);
-        params->vec(lo_, kMappoObs) = lo;
-        params->vec(hi_, kMappoObs) = hi.array().max(lo.array() + 1e-3f).matrix();
+        params->state_vec(lo_, kMappoObs) = lo;
+        params->state_vec(hi_, kMappoObs) = hi.array().max(lo.array() + 1e-3f).matrix();
     }
     // Scaled observations (O, N) -> [-1, 1] per feature, in place (values beyond the training
     // data's limits map beyond +-1).
     void normalize(Mat& obs) const {
-        const auto lo = params->vec(lo_, kMappoObs).array(), hi = params->vec(hi_, kMappoObs).array();
+        const auto lo = params->state_vec(lo_, kMappoObs).array(), hi = params->state_vec(hi_, kMappoObs).array();
         obs = ((obs.array().colwise() - lo).colwise() * (2.0f / (hi - lo))) - 1.0f;
     }
 
     // out (O, H*A) = the predicted clean window x0 from x (O, H*A), k (B) step per window,
     // ret (B) normalised returns, keep (B) 1 = conditioned on ret, 0 = unconditional. B
     // windows of n agents; normalised observations.
-    void denoise(const Mat& x, int B, int n, const int* k, const float* ret, const float* keep, Mat& eps) {
+    void denoise(const Mat& x, int B, int n, const int* k, const float* ret, const float* keep, Mat& out) {
         const MadiffConfig& c = config;
         const int A = B * n, D = c.dim;
         MADBP_ASSERT(B >= 1 && n >= 1 && x.rows() == kMappoObs && x.cols() == (long)c.horizon * A);
         B_ = B, n_ = n;
+        x_ = &x;
         auto& e = emb_;
-        e.k.resize(B);
         e.ret_in.resize(1, B);
         e.keep.assign(keep, keep + B);
-        for (int b = 0; b < B; ++b) e.k[b] = (float)k[b], e.ret_in(0, b) = ret[b];
-        sinusoidal_embedding(e.k.data(), B, D, e.sin);
-        e.t1.forward(e.sin, e.th);
-        e.t_act.forward(e.th, e.tha);
-        e.t2.forward(e.tha, e.t_tok);
+        for (int b = 0; b < B; ++b) e.ret_in(0, b) = ret[b];
+        step_.forward(k, B, e.t_tok);
         e.r1.forward(e.ret_in, e.rh);
         e.r_act.forward(e.rh, e.rha);
         e.r2.forward(e.rha, e.r_tok);
@@ -1894,15 +1935,15 @@ public:
         e.c_act.forward(e.pre, e.cond_b);
         cond_.resize(2 * D, A);
         for (int a = 0; a < A; ++a) cond_.col(a) = e.cond_b.col(a / n);
-        unet_forward(x, eps);
+        unet_.forward(x, cond_, B, n, out);
     }
 
     // Backward of the last denoise: ADDS the parameter gradients of the loss whose gradient
-    // at eps is d_eps.
-    void backward(const Mat& d_eps) {
+    // at out is d_out.
+    void backward(const Mat& d_out) {
         const int D = config.dim, A = B_ * n_;
         d_cond_.setZero(2 * D, A);
-        unet_backward(d_eps);
+        unet_.backward(*x_, cond_, B_, n_, d_out, d_x_, d_cond_);
         auto& e = emb_;
         e.d_cond_b.setZero(2 * D, B_);
         for (int a = 0; a < A; ++a) e.d_cond_b.col(a / n_) += d_cond_.col(a);
@@ -1910,9 +1951,7 @@ public:
         e.d_t = e.d_pre.topRows(D);
         e.d_r.resize(D, B_);
         for (int b = 0; b < B_; ++b) e.d_r.col(b) = e.keep[b] * e.d_pre.col(b).tail(D);
-        e.t2.backward(e.tha, e.d_t, e.d_tha);
-        e.t_act.backward(e.th, e.d_tha, e.d_th);
-        e.t1.backward(e.sin, e.d_th, e.d_sin);
+        step_.backward(e.d_t);
         e.r2.backward(e.rha, e.d_r, e.d_rha);
         e.r_act.backward(e.rh, e.d_rha, e.d_rh);
         e.r1.backward(e.ret_in, e.d_rh, e.d_ret);
@@ -1921,105 +1960,35 @@ public:
 private:
     bool training_ = true;
     int B_ = 0, n_ = 0, lo_ = -1, hi_ = -1;
-    Mat cond_, d_cond_;
-    struct Embed {
-        Linear t1, t2, r1, r2;
-        Mish t_act, r_act, c_act;
-        std::vector<float> k, keep;
-        Mat sin, th, tha, t_tok, ret_in, rh, rha, r_tok, pre, cond_b;
-        Mat d_cond_b, d_pre, d_t, d_r, d_tha, d_th, d_sin, d_rha, d_rh, d_ret;
+    const Mat* x_ = nullptr;       // the input of the last denoise (kept for backward)
+    Mat cond_, d_cond_;            // (2D, A) each agent's condition: [step token; return token]
+    Mat d_x_;                      // (O, H*A) unused input gradient
+    StepEmbedding step_;
+    FilmUNet unet_;
+    struct ReturnEmbed {           // return (1, B) -> r_tok (D, B); keep (B) drops it (CFG)
+        Linear r1, r2;
+        Mish r_act, c_act;
+        std::vector<float> keep;
+        Mat t_tok, ret_in, rh, rha, r_tok;   // (D, B), (1, B), (D, B) x3
+        Mat pre, cond_b;                     // (2D, B)
+        Mat d_cond_b, d_pre, d_t, d_r, d_rha, d_rh, d_ret;
     } emb_;
-    struct UNet {
-        std::vector<ConvBlock> down, up;
-        ConvBlock mid;
-        std::vector<AgentAttention> skip_attn;
-        AgentAttention mid_attn;
-        std::vector<MaxPool1d> pool;
-        std::vector<Upsample1d> upsample;
-        Conv1d decoder;
-        std::vector<Mat> h, s, pooled, up_buf, cat, up_out, d_s;
-        Mat mid_h, mid_out;
-        Mat d_cur, d_cat, d_up, d_mid, d_pool, d_h, d_tmp;
-    } net_;
 
+    // Parameters are created in this order (it fixes the initial weights for a seed).
     void build(uint64_t seed) {
         Rng rng(seed);
         ParamStore& ps = *params;
         const MadiffConfig& c = config;
-        const int D = c.dim, L = c.levels(), Dc = 2 * D;
-        emb_.t1 = Linear(ps, "step.l1", D, 2 * D, rng);
-        emb_.t2 = Linear(ps, "step.l2", 2 * D, D, rng);
+        const int D = c.dim;
+        step_ = StepEmbedding(ps, "step", D, rng);
         emb_.r1 = Linear(ps, "ret.l1", 1, D, rng);
         emb_.r2 = Linear(ps, "ret.l2", D, D, rng);
-        auto& u = net_;
-        int cin = kMappoObs;
-        for (int l = 0; l < L; ++l) {
-            u.down.emplace_back(ps, "unet.down" + std::to_string(l), cin, c.channels[l], c.kernel, Dc, rng);
-            u.skip_attn.emplace_back(ps, "attn.skip" + std::to_string(l), c.channels[l], c.heads, rng);
-            cin = c.channels[l];
-        }
-        u.mid = ConvBlock(ps, "unet.mid", cin, cin, c.kernel, Dc, rng);
-        u.mid_attn = AgentAttention(ps, "attn.mid", cin, c.heads, rng);
-        u.up.resize(L);
-        for (int l = L - 1; l >= 0; --l) {
-            u.up[l] = ConvBlock(ps, "unet.up" + std::to_string(l), cin + c.channels[l], c.channels[l], c.kernel, Dc, rng);
-            cin = c.channels[l];
-        }
-        u.decoder = Conv1d(ps, "unet.decoder", c.channels[0], kMappoObs, 1, rng);
-        u.pool.resize(L);
-        u.upsample.resize(L);
-        for (auto* v : {&u.h, &u.s, &u.pooled, &u.up_buf, &u.cat, &u.up_out, &u.d_s}) v->resize(L);
+        unet_ = FilmUNet(ps, "unet", "attn", kMappoObs, kMappoObs, c.channels, c.kernel, 2 * D, c.horizon, c.heads, rng);
         inv = InverseDynamics(ps, "inv", kMappoObs, c.inv_hidden, rng);
         lo_ = ps.add("norm.lo", {kMappoObs}, Init::zeros(), rng, false);
         hi_ = ps.add("norm.hi", {kMappoObs}, Init::ones(), rng, false);
-        params->vec(lo_, kMappoObs).setConstant(-1.0f);
+        params->state_vec(lo_, kMappoObs).setConstant(-1.0f);
     }
-    const Mat& down_input(const Mat& x, int l) const { return l == 0 ? x : net_.pooled[l - 1]; }
-    const Mat& up_input(int l) const { return l == config.levels() - 1 ? net_.mid_out : net_.up_out[l + 1]; }
-
-    void unet_forward(const Mat& x, Mat& eps) {
-        auto& u = net_;
-        const int L = config.levels(), H = config.horizon;
-        x_ = &x;
-        for (int l = 0; l < L; ++l) {
-            u.down[l].forward(down_input(x, l), H >> l, cond_, nullptr, u.h[l]);
-            u.skip_attn[l].forward(u.h[l], H >> l, B_, n_, u.s[l]);  // agents attend on the skip
-            u.pool[l].forward(u.h[l], H >> l, u.pooled[l]);
-        }
-        u.mid.forward(u.pooled[L - 1], H >> L, cond_, nullptr, u.mid_h);
-        u.mid_attn.forward(u.mid_h, H >> L, B_, n_, u.mid_out);  // and at the bottleneck
-        for (int l = L - 1; l >= 0; --l) {
-            u.upsample[l].forward(up_input(l), u.up_buf[l]);
-            const long cu = u.up_buf[l].rows(), cs = u.s[l].rows();
-            u.cat[l].resize(cu + cs, u.up_buf[l].cols());
-            u.cat[l].topRows(cu) = u.up_buf[l];
-            u.cat[l].bottomRows(cs) = u.s[l];
-            u.up[l].forward(u.cat[l], H >> l, cond_, nullptr, u.up_out[l]);
-        }
-        u.decoder.forward(u.up_out[0], H, eps);
-    }
-    void unet_backward(const Mat& d_eps) {
-        auto& u = net_;
-        const int L = config.levels(), H = config.horizon;
-        const Mat& x = *x_;
-        u.decoder.backward(u.up_out[0], H, d_eps, u.d_cur);
-        for (int l = 0; l < L; ++l) {
-            u.up[l].backward(u.cat[l], H >> l, cond_, nullptr, u.d_cur, u.d_cat, d_cond_);
-            const long cu = up_input(l).rows(), cs = u.s[l].rows();
-            u.d_s[l] = u.d_cat.bottomRows(cs);
-            u.d_up = u.d_cat.topRows(cu);
-            u.upsample[l].backward(up_input(l), u.d_up, u.d_cur);
-        }
-        u.mid_attn.backward(u.mid_h, H >> L, B_, n_, u.d_cur, u.d_mid);
-        u.mid.backward(u.pooled[L - 1], H >> L, cond_, nullptr, u.d_mid, u.d_pool, d_cond_);
-        for (int l = L - 1; l >= 0; --l) {
-            u.pool[l].backward(u.h[l], H >> l, u.d_pool, u.d_h);
-            u.skip_attn[l].backward(u.h[l], H >> l, B_, n_, u.d_s[l], u.d_tmp);
-            u.d_h += u.d_tmp;
-            u.down[l].backward(down_input(x, l), H >> l, cond_, nullptr, u.d_h, u.d_pool, d_cond_);
-        }
-    }
-    const Mat* x_ = nullptr;  // the input of the last denoise (kept for backward)
 };
 
 // Model files (SPEC 11): parameters as safetensors, MadiffConfig in __metadata__ (model =
@@ -2034,8 +2003,7 @@ namespace detail {
 inline MadiffModel madiff_from(const SafeTensors& st) {
     MadiffModel m(MadiffConfig::from_metadata(st));
     read_param_tensors(st, *m.params);
-    for (long k = 0; k < m.params->size(); ++k)
-        if (!std::isfinite(m.params->value[k])) throw std::runtime_error(st.source + ": a parameter is not finite");
+    if (!m.params->value.allFinite() || !m.params->state.allFinite()) throw std::runtime_error(st.source + ": a parameter is not finite");
     m.set_training(false);
     return m;
 }

@@ -38,7 +38,9 @@ SceneBatch random_batch(const ModelConfig& c, int B, int n, const std::vector<in
             s.agent_mask[a] = i < counts[b] ? 1.0f : 0.0f;
             s.slot[a] = (i + 2 * b) % c.n_max;
             for (int r = 0; r < 4; ++r) s.pose(r, a) = (float)rng.uniform(-0.8, 0.8);
-            fill_local_crop(s, a, map, Vec2{s.pose(0, a) * c.position_scale, s.pose(1, a) * c.position_scale}, c);
+            if (c.local_grid > 0)
+                local_crop(map, Vec2{s.pose(0, a) * c.position_scale, s.pose(1, a) * c.position_scale}, c.local_grid, c.local_extent,
+                           s.local.data() + (long)a * c.local_grid * c.local_grid);
         }
     }
     return s;

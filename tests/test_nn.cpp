@@ -279,8 +279,8 @@ static MatD ref_batchnorm(const MatD& x, const float* mask, const VecD& p, const
             if (!mask || mask[j] != 0) var.array() += (x.col(j) - mean).array().square();
         var /= n;
     } else {
-        mean = pvec(p, bn.running_mean, (int)C);
-        var = pvec(p, bn.running_var, (int)C);
+        mean = bn.ps->state_vec(bn.running_mean, (int)C).cast<double>();  // running statistics: state, not weights
+        var = bn.ps->state_vec(bn.running_var, (int)C).cast<double>();
     }
     MatD y(C, N);
     for (long j = 0; j < N; ++j)
@@ -566,20 +566,20 @@ TEST_CASE("nn: BatchNorm1d masked columns do not change the unmasked outputs or 
     Mat x = randn(3, 8, rng), y1, y2;
     const float mask[8] = {1, 1, 0, 1, 0, 1, 1, 0};
     bn.forward(x, mask, y1);
-    const Vec rm1 = ps.vec(bn.running_mean, 3), rv1 = ps.vec(bn.running_var, 3);
-    ps.vec(bn.running_mean, 3).setZero();
-    ps.vec(bn.running_var, 3).setOnes();
+    const Vec rm1 = ps.state_vec(bn.running_mean, 3), rv1 = ps.state_vec(bn.running_var, 3);
+    ps.state_vec(bn.running_mean, 3).setZero();
+    ps.state_vec(bn.running_var, 3).setOnes();
     for (int j : {2, 4, 7}) x.col(j).setConstant(1e3f);
     bn.forward(x, mask, y2);
     for (int j : {0, 1, 3, 5, 6}) CHECK((y1.col(j) - y2.col(j)).cwiseAbs().maxCoeff() == 0);
-    CHECK((rm1 - ps.vec(bn.running_mean, 3)).cwiseAbs().maxCoeff() == 0);
-    CHECK((rv1 - ps.vec(bn.running_var, 3)).cwiseAbs().maxCoeff() == 0);
+    CHECK((rm1 - ps.state_vec(bn.running_mean, 3)).cwiseAbs().maxCoeff() == 0);
+    CHECK((rv1 - ps.state_vec(bn.running_var, 3)).cwiseAbs().maxCoeff() == 0);
     // Running statistics after one step: 0.1 * mean and 0.9 + 0.1 * unbiased variance.
     Vec mean = Vec::Zero(3), var = Vec::Zero(3);
     for (int j : {0, 1, 3, 5, 6}) mean += x.col(j) / 5;
     for (int j : {0, 1, 3, 5, 6}) var.array() += (x.col(j) - mean).array().square() / 4;
-    CHECK((ps.vec(bn.running_mean, 3) - 0.1f * mean).cwiseAbs().maxCoeff() < 1e-6);
-    CHECK((ps.vec(bn.running_var, 3) - (0.9f * Vec::Ones(3) + 0.1f * var)).cwiseAbs().maxCoeff() < 1e-5);
+    CHECK((ps.state_vec(bn.running_mean, 3) - 0.1f * mean).cwiseAbs().maxCoeff() < 1e-6);
+    CHECK((ps.state_vec(bn.running_var, 3) - (0.9f * Vec::Ones(3) + 0.1f * var)).cwiseAbs().maxCoeff() < 1e-5);
 }
 
 TEST_CASE("nn: BatchNorm1d gradients in training mode with a mask, and in eval mode") {
@@ -588,7 +588,7 @@ TEST_CASE("nn: BatchNorm1d gradients in training mode with a mask, and in eval m
         ParamStore ps;
         madbp::BatchNorm1d bn(ps, "bn", 4, rng);
         ps.value = randn(ps.size(), 1, rng, 0.5);
-        ps.vec(bn.running_var, 4) = ps.vec(bn.running_var, 4).cwiseAbs().array() + 0.5f;
+        ps.state_vec(bn.running_var, 4) = ps.state_vec(bn.running_var, 4).cwiseAbs().array() + 0.5f;
         bn.training = training;
         const float mask[10] = {1, 0, 1, 1, 1, 0, 1, 1, 0, 1};
         GradCheck gc;
@@ -608,15 +608,15 @@ TEST_CASE("nn: BatchNorm1d eval mode uses the running statistics") {
     Rng rng(0);
     ParamStore ps;
     madbp::BatchNorm1d bn(ps, "bn", 1, rng);
-    ps.vec(bn.running_mean, 1) << 2;
-    ps.vec(bn.running_var, 1) << 4;
+    ps.state_vec(bn.running_mean, 1) << 2;
+    ps.state_vec(bn.running_var, 1) << 4;
     bn.training = false;
     Mat x(1, 2), y;
     x << 2, 6;
     bn.forward(x, nullptr, y);
     CHECK(y(0) == doctest::Approx(0.0));
     CHECK(y(1) == doctest::Approx(4.0 / std::sqrt(4.0 + 1e-5)));
-    CHECK(ps.vec(bn.running_mean, 1)[0] == 2);
+    CHECK(ps.state_vec(bn.running_mean, 1)[0] == 2);
 }
 
 // ---------------------------------------------------------------------------------------------
@@ -891,13 +891,14 @@ TEST_CASE("nn: Adam matches a hand-computed first and second step, eps outside t
     madbp::Adam adam;
     adam.lr = 0.1f;
     adam.eps = 0.1f;  // large, so eps inside the square root would give a different answer
-    ps.grad << 0.5f, 7.0f;
+    REQUIRE(ps.size() == 1);  // the state lives apart from the weights
+    ps.grad << 0.5f;
     adam.update(ps);
     // m = 0.05, v = 0.00025, m_hat = 0.5, v_hat = 0.25: step = 0.1 * 0.5 / (0.5 + 0.1).
     CHECK(ps.value[0] == doctest::Approx(1.0 - 0.1 * 0.5 / 0.6).epsilon(1e-6));
-    CHECK(ps.value[1] == 1.0f);  // non-trainable: untouched
+    CHECK(ps.state[0] == 1.0f);  // non-trainable: untouched
     CHECK(adam.step == 1);
-    ps.grad << -0.25f, 7.0f;
+    ps.grad << -0.25f;
     adam.update(ps);
     const double m = 0.9 * 0.05 + 0.1 * -0.25, v = 0.999 * 0.00025 + 0.001 * 0.0625;
     const double mhat = m / (1 - 0.81), vhat = v / (1 - 0.999 * 0.999);
@@ -906,7 +907,7 @@ TEST_CASE("nn: Adam matches a hand-computed first and second step, eps outside t
     madbp::Adam decay;
     decay.lr = 0.1f;
     decay.weight_decay = 0.5f;
-    ps.value << 2.0f, 1.0f;
+    ps.value << 2.0f;
     ps.zero_grad();
     decay.update(ps);
     CHECK(ps.value[0] == doctest::Approx(2.0 - 0.1 * 0.5 * 2.0));
@@ -917,31 +918,33 @@ TEST_CASE("nn: clip_grad_norm scales trainable gradients and returns the norm be
     ParamStore ps;
     ps.add("a", {2}, madbp::Init::zeros(), rng);
     ps.add("stat", {1}, madbp::Init::zeros(), rng, false);
-    ps.grad << 3, 4, 100;
+    REQUIRE(ps.grad.size() == 2);  // state has no gradient
+    ps.grad << 3, 4;
     CHECK(madbp::clip_grad_norm(ps, 1.0f) == doctest::Approx(5.0));
     CHECK(ps.grad[0] == doctest::Approx(0.6).epsilon(1e-5));
     CHECK(ps.grad[1] == doctest::Approx(0.8).epsilon(1e-5));
-    CHECK(ps.grad[2] == 100);
     CHECK(madbp::clip_grad_norm(ps, 10.0f) == doctest::Approx(1.0).epsilon(1e-5));  // under the limit
     CHECK(ps.grad[1] == doctest::Approx(0.8).epsilon(1e-5));
 }
 
-TEST_CASE("nn: EMA copies first, then averages trainable entries and copies statistics") {
+TEST_CASE("nn: EMA copies first, then averages the weights and leaves the state alone") {
     Rng rng(0);
     ParamStore ps;
     ps.add("w", {1}, madbp::Init::zeros(), rng);
     ps.add("stat", {1}, madbp::Init::zeros(), rng, false);
     madbp::Ema ema;
     ema.decay = 0.9f;
-    ps.value << 1, 1;
+    ps.value << 1;
     ema.update(ps);
     CHECK(ema.shadow[0] == 1);
-    ps.value << 2, 5;
+    ps.value << 2;
+    ps.state << 5;
     ema.update(ps);
+    CHECK(ema.shadow.size() == 1);
     CHECK(ema.shadow[0] == doctest::Approx(1.1));
-    CHECK(ema.shadow[1] == 5);
     ema.copy_to(ps);
     CHECK(ps.value[0] == doctest::Approx(1.1));
+    CHECK(ps.state[0] == 5);  // the live statistics go with the EMA weights
 }
 
 TEST_CASE("nn: a two-layer MLP trained with Adam fits a regression problem (MSE < 2e-3)") {

@@ -306,3 +306,46 @@ TEST_CASE("training: two data-parallel replicas are deterministic and resume exa
     remove_run(a);
     remove_run(b);
 }
+
+TEST_CASE("train: training and planning encode the same state identically (one encoder)") {
+    // One scene: three robots on the barrier map, planned once with a small random model.
+    const ModelConfig c = tiny_config();
+    World world = make_random_world("barrier", 3, 5);
+    DiffusionPlanner planner(MadbpModel(c, 1));
+    planner.plan(world);
+    const SceneBatch& planned = planner.last_scene_batch();
+    // The same state as a one-frame-per-step demonstration that stays put for a window.
+    Demonstration d;
+    d.map = world.map();
+    d.agents = world.size();
+    d.steps = c.horizon + 1;
+    for (const Agent& a : world.agents()) d.goals.push_back(a.goal);
+    for (int t = 0; t <= d.steps; ++t)
+        for (const Agent& a : world.agents()) d.pos.push_back(a.pos);
+    DemoSet demos;
+    demos.episodes.push_back(d);
+    TrainConfig tc = tiny_train("unused");
+    tc.batch = 1;
+    tc.augment = false;  // no mirroring: the same world
+    Rng rng(2);
+    TrainBatch tb;
+    make_train_batch(demos, {{0, 0}}, c, tc, 3, rng, tb);
+    const SceneBatch& trained = tb.scene;
+    REQUIRE(trained.n == planned.n);
+    CHECK(trained.grid == planned.grid);
+    const long Gl2 = (long)c.local_grid * c.local_grid;
+    const float reach = default_goal_reach(c);
+    int matched = 0;
+    for (int a = 0; a < trained.n; ++a)      // training shuffles the agents: match them by pose
+        for (int b = 0; b < planned.n; ++b) {
+            if (trained.pose.col(a) != planned.pose.col(b)) continue;
+            ++matched;
+            CHECK(trained.agent_mask[a] == planned.agent_mask[b]);
+            CHECK(trained.local.middleCols(a * Gl2, Gl2) == planned.local.middleCols(b * Gl2, Gl2));
+            const bool pinned = tb.pinned[(size_t)a * c.horizon + c.horizon - 1] != 0;
+            CHECK(pinned == end_pinned(planned, b, c, reach));
+        }
+    CHECK(matched == 3);
+    // Training draws PE_agent slots at random (distinct); planning numbers them in order.
+    CHECK(trained.slot[0] != trained.slot[1]);
+}
