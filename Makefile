@@ -15,7 +15,7 @@ CXXFLAGS_SAN  := -std=c++17 -O1 -g -fopenmp -fsanitize=address,undefined -fno-om
 
 BUILD        ?= build
 # OpenMP threads sleep instead of spinning while they wait: on a busy 2-core machine spinning
-# made 2-thread training up to 20x slower (README "Threads"). Override in the environment.
+# made 2-thread training up to 20x slower (docs/speed.md). Override in the environment.
 export OMP_WAIT_POLICY ?= passive
 TEST_SRCS    ?= $(wildcard tests/test_*.cpp)
 TEST_OBJS    := $(patsubst tests/%.cpp,$(BUILD)/tests/%.o,$(TEST_SRCS))
@@ -26,7 +26,7 @@ EXAMPLES     := $(patsubst examples/%.cpp,$(BUILD)/%,$(EXAMPLE_SRCS))
 # benchmark, which replaces malloc and so is a program of its own.
 TOOLS        := $(BUILD)/madbp $(BUILD)/bench_alloc
 
-.PHONY: all deps test test-sanitize demo bench fuzz model mappo-models madiff-models paper-models results clean
+.PHONY: all deps check-headers test test-sanitize demo bench fuzz fuzz-build model mappo-models madiff-models paper-models results clean
 all: deps $(TOOLS) $(EXAMPLES)
 
 # Install Eigen and doctest through apt when their headers are missing.
@@ -58,6 +58,12 @@ $(BUILD)/san/%.o: tests/%.cpp | deps
 $(BUILD)/run_tests_san: $(BUILD)/san/main.o $(SAN_OBJS)
 	$(CXX) $(CXXFLAGS_SAN) -o $@ $^
 
+# Each header compiles on its own (no include-order dependencies), warning-free.
+check-headers: deps
+	@set -e; for h in madbp_sim.hpp madbp.hpp madbp_train.hpp; do \
+	  echo "#include \"$$h\"" | $(CXX) -std=c++17 -fsyntax-only -fopenmp $(WARN) -Werror $(INCLUDES) -x c++ - ; \
+	  echo "$$h compiles on its own"; done
+
 # Runs every test; the last line is "N passed, N failed" (doctest's test-case counts).
 test: deps $(BUILD)/run_tests
 	@set -o pipefail; $(BUILD)/run_tests $(TEST_ARGS) 2>&1 | tee $(BUILD)/test.log; status=$$?; \
@@ -86,14 +92,24 @@ model: all
 	$(BUILD)/madbp train --data $(BUILD)/demos.bin --out models/madbp-default.safetensors $(MODEL_FLAGS)
 	rm -f models/madbp-default.safetensors.train
 
-# libFuzzer target for the checkpoint reader; FUZZ_SECONDS=600 for the release check.
+# libFuzzer targets tests/fuzz_NAME.cpp (ASan + UBSan): checkpoint reader, scene parser,
+# dataset reader. `make fuzz` builds them all (`make fuzz-build` only builds) and runs each for
+# FUZZ_SECONDS (600 for the release check) on build/fuzz-corpus/NAME, seeded from
+# tests/fuzz-seeds (checkpoint) or tests/fuzz-seeds-NAME; FUZZ_TARGETS=scene runs some.
 FUZZ_SECONDS ?= 60
-fuzz: deps
-	@mkdir -p $(BUILD)/fuzz-corpus
-	clang++ -std=c++17 -O1 -g -fsanitize=fuzzer,address,undefined $(INCLUDES) -o $(BUILD)/fuzz_checkpoint tests/fuzz_checkpoint.cpp
-	$(BUILD)/fuzz_checkpoint -max_total_time=$(FUZZ_SECONDS) -max_len=4096 $(BUILD)/fuzz-corpus tests/fuzz-seeds
+FUZZ_TARGETS ?= checkpoint scene dataset
+FUZZ_CXXFLAGS := -std=c++17 -O1 -g -fopenmp -fsanitize=fuzzer,address,undefined $(INCLUDES)
+fuzz-build: deps
+	@mkdir -p $(BUILD)
+	@set -e; for t in $(FUZZ_TARGETS); do \
+	  echo "clang++ $(FUZZ_CXXFLAGS) -o $(BUILD)/fuzz_$$t tests/fuzz_$$t.cpp"; \
+	  clang++ $(FUZZ_CXXFLAGS) -o $(BUILD)/fuzz_$$t tests/fuzz_$$t.cpp; done
+fuzz: fuzz-build
+	@set -e; for t in $(FUZZ_TARGETS); do seeds=tests/fuzz-seeds-$$t; [ $$t = checkpoint ] && seeds=tests/fuzz-seeds; \
+	  mkdir -p $(BUILD)/fuzz-corpus/$$t; \
+	  $(BUILD)/fuzz_$$t -max_total_time=$(FUZZ_SECONDS) -max_len=4096 $(BUILD)/fuzz-corpus/$$t $$seeds; done
 
-# MAPPO policies (SPEC 3.3; README "MAPPO"): map:n:iterations (~14 min on 2 cores).
+# MAPPO policies (SPEC 3.3; docs/design.md "MAPPO"): map:n:iterations (~14 min on 2 cores).
 MAPPO_CELLS := empty:1:100 empty:2:200 empty:3:250 empty:4:300 empty:6:400 empty:8:500 \
                obstacles:2:300 obstacles:3:400 obstacles:4:500 barrier:2:500 barrier:3:500 barrier:4:600
 mappo-models: $(BUILD)/madbp
@@ -102,12 +118,12 @@ mappo-models: $(BUILD)/madbp
 	  $(BUILD)/madbp mappo --map $$map --agents $$n --iterations $$it --threads 2 \
 	    --out models/mappo/$$map-$$n.safetensors; done
 
-# Every table and figure of the paper plus ours (README "Evaluation suite"): results/*.md, *.csv,
+# Every table and figure of the paper plus ours (docs/evaluation.md): results/*.md, *.csv,
 # *.svg; resumable (rerun to continue), shardable with SUITE_FLAGS='--shard i/N'.
 results: $(BUILD)/madbp
 	$(BUILD)/madbp eval --suite paper --threads 2 $(SUITE_FLAGS)
 
-# MADiff baselines (SPEC 3.4; README "MADiff"): expert demonstrations, then one model per
+# MADiff baselines (SPEC 3.4; docs/design.md "MADiff"): expert demonstrations, then one model per
 # map:n:steps on one thread (each <= 3 min on the 2-core machine).
 MADIFF_CELLS := empty:2:10000 empty:4:8000 empty:6:7000 obstacles:2:10000 obstacles:3:8000 obstacles:4:8000 \
                 barrier:2:10000 barrier:3:8000 barrier:4:8000
@@ -121,7 +137,7 @@ madiff-models: $(BUILD)/madbp
 	    --out models/madiff/$$map-$$n.safetensors; \
 	  rm -f models/madiff/$$map-$$n.safetensors.train; done
 
-# The models of the paper's figures (README "Results"; `madbp eval --suite paper` reads them):
+# The models of the paper's figures (docs/evaluation.md; `madbp eval --suite paper` reads them):
 # Fig. 4 upscaling models trained on 1..k robots of all three maps (k = 4 is the default model),
 # and the ablations of Table II and the horizon sweep on the empty map (as the paper does).
 # Shorter training than the default model's 20,000 steps, to fit a 2-core session (~1 h).
@@ -147,5 +163,39 @@ paper-models: all
 
 clean:
 	rm -rf $(BUILD)
+
+# --- Packaging (docs/packaging.md) -------------------------------------------------------------
+.PHONY: test-consumer aarch64 test-aarch64
+
+# Installs with CMake into a temporary prefix and builds/runs the find_package, pkg-config and
+# FetchContent consumers; checks the Python readers against C++ and the Slurm shard merge on a
+# tiny suite. The last line is "N passed, N failed".
+test-consumer: $(BUILD)/madbp
+	tests/consumer/check.sh
+
+# Cross build for 64-bit ARM (Debian's g++-aarch64-linux-gnu, installed when missing): the tool
+# and the tests in $(AARCH64_BUILD), ARCH empty (AARCH64_ARCH=-mcpu=cortex-a76 for a given
+# board). doctest is header-only: its host headers are reached through a directory of its own.
+# `make test-aarch64` runs the suite under qemu-user with the cross libraries in AARCH64_SYSROOT
+# and ends with "N passed, N failed"; AARCH64_TEST_ARGS passes doctest options.
+AARCH64_CXX       ?= aarch64-linux-gnu-g++
+AARCH64_ARCH      ?=
+AARCH64_BUILD     ?= $(BUILD)/aarch64
+AARCH64_SYSROOT   ?= /usr/aarch64-linux-gnu
+QEMU_AARCH64      ?= qemu-aarch64
+AARCH64_TEST_ARGS ?=
+aarch64: deps
+	@command -v $(AARCH64_CXX) >/dev/null || { echo "installing g++-aarch64-linux-gnu"; \
+	  $(SUDO) apt-get update -qq && $(SUDO) apt-get install -y -qq g++-aarch64-linux-gnu; }
+	@mkdir -p $(AARCH64_BUILD)/include && ln -sfn /usr/include/doctest $(AARCH64_BUILD)/include/doctest
+	$(MAKE) BUILD=$(AARCH64_BUILD) CXX=$(AARCH64_CXX) ARCH='$(AARCH64_ARCH)' \
+	  INCLUDES='$(INCLUDES) -isystem $(AARCH64_BUILD)/include' $(AARCH64_BUILD)/madbp $(AARCH64_BUILD)/run_tests
+	@file $(AARCH64_BUILD)/madbp 2>/dev/null || true
+
+test-aarch64: aarch64
+	@command -v $(QEMU_AARCH64) >/dev/null || { echo "installing qemu-user"; \
+	  $(SUDO) apt-get update -qq && $(SUDO) apt-get install -y -qq qemu-user; }
+	@set -o pipefail; $(QEMU_AARCH64) -L $(AARCH64_SYSROOT) $(AARCH64_BUILD)/run_tests $(AARCH64_TEST_ARGS) 2>&1 \
+	  | tee $(AARCH64_BUILD)/test.log; status=$$?; tests/summary.sh $(AARCH64_BUILD)/test.log; exit $$status
 
 -include $(wildcard $(BUILD)/*.d $(BUILD)/tests/*.d $(BUILD)/san/*.d)

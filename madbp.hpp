@@ -53,7 +53,24 @@
 //                                  GEMM packs its blocks on the stack, not the heap. Include
 //                                  madbp.hpp before any Eigen header for it to take effect.
 //
+// Contents (in the order of the data: layers -> checkpoints -> model parts -> model -> sampler
+// -> planner; SPEC sections of docs/design.md in brackets)
+//   1 NN core: Mat, set_num_threads, Init, ParamStore (weights + state), Linear, LayerNorm,
+//     MultiHeadAttention, Conv1d, ConvTranspose1d, BatchNorm1d, MaxPool1d, Upsample1d, Conv2d,
+//     ReLU, SiLU, Mish, Tanh, Embedding, sinusoidal_embedding, film_forward, Adam,
+//     clip_grad_norm, Ema                                                              [4]
+//   2 checkpoints: NamedTensor, SafeTensors, parse/serialize_safetensors, write_file_atomic,
+//     save/load_safetensors, param_tensors, read_param_tensors, save/load_params       [11]
+//   3 model inputs: ModelConfig, SceneBatch, encode_map, encode_agent, end_pinned        [5]
+//   4 model parts: ConvBlock, AgentAttention, FilmUNet, StepEmbedding, ContextEncoder,
+//     TrajectoryProcessor                                                              [5]
+//   5 the model: MadbpModel, save_model, load_model                                      [5, 11]
+//   6 diffusion: NoiseSchedule, SamplerConfig, sample_windows (DDIM with inpainting)      [6]
+//   7 planner: DiffusionPlanner                                                         [8]
+//
 // Changelog
+//   0.2  one FilmUNet / ContextEncoder / TrajectoryProcessor; one world-to-model encoder;
+//        BatchNorm statistics in ParamStore::state; optimizer-state I/O moved to madbp_train.hpp.
 //   0.1  neural-network core, safetensors checkpoints, MA-DBP model, DDIM sampler, planner.
 
 #ifndef MADBP_HPP
@@ -71,6 +88,9 @@
 #pragma GCC diagnostic ignored "-Wuninitialized"
 #endif
 #include "madbp_sim.hpp"
+#if MADBP_VERSION_MAJOR != 0 || MADBP_VERSION_MINOR != 2
+#error "madbp.hpp is release 0.2; the madbp_sim.hpp it includes is another release"
+#endif
 
 #include <Eigen/Dense>
 #if defined(__GNUC__) && !defined(__clang__)
@@ -924,7 +944,9 @@ struct Embedding {
 // Sinusoidal embedding of scalars (the diffusion step) as DDPM/Diffuser: t (N) -> y (dim, N),
 // rows [0, dim/2) sin(t f_i), rows [dim/2, dim) cos(t f_i), f_i = exp(-ln(10000) i / (dim/2 - 1)).
 // dim even, >= 4.
+namespace detail {
 inline double sinusoidal_frequency(int i, int dim) { return std::exp(-std::log(10000.0) * i / (dim / 2 - 1)); }
+}  // namespace detail
 
 inline void sinusoidal_embedding(const float* t, int N, int dim, Mat& y) {
     MADBP_ASSERT(dim % 2 == 0 && dim >= 4);
@@ -932,7 +954,7 @@ inline void sinusoidal_embedding(const float* t, int N, int dim, Mat& y) {
     y.resize(dim, N);
     for (int n = 0; n < N; ++n)
         for (int i = 0; i < half; ++i) {
-            const double arg = t[n] * sinusoidal_frequency(i, dim);
+            const double arg = t[n] * detail::sinusoidal_frequency(i, dim);
             y(i, n) = (float)std::sin(arg);
             y(half + i, n) = (float)std::cos(arg);
         }
@@ -943,7 +965,7 @@ inline void sinusoidal_embedding_backward(const float* t, int N, int dim, const 
     for (int n = 0; n < N; ++n) {
         double acc = 0;
         for (int i = 0; i < half; ++i) {
-            const double f = sinusoidal_frequency(i, dim), arg = t[n] * f;
+            const double f = detail::sinusoidal_frequency(i, dim), arg = t[n] * f;
             acc += dy(i, n) * f * std::cos(arg) - dy(half + i, n) * f * std::sin(arg);
         }
         dt[n] = (float)acc;
@@ -1665,71 +1687,6 @@ inline void save_params(const std::string& path, const ParamStore& ps, const std
 
 inline void load_params(const std::string& path, ParamStore& ps) { read_param_tensors(load_safetensors(path), ps); }
 
-// Reads a flat tensor of exactly n values into out (used for optimizer state).
-inline void read_flat(const SafeTensors& st, const std::string& name, int n, Vec& out) {
-    const NamedTensor& t = st.at(name);
-    if (t.shape != std::vector<int>{n})
-        throw std::runtime_error(st.source + ": tensor '" + name + "' has shape " + detail::shape_string(t.shape) + " but [" +
-                                 std::to_string(n) + "] is expected");
-    out = Eigen::Map<const Vec>(t.data.data(), n);
-}
-
-// Adam state: tensors optim.adam.m / optim.adam.v (P) and metadata "optim.adam.step".
-// Only the moments and step are saved; hyper-parameters belong to the training config.
-inline void append_adam(const Adam& adam, std::vector<NamedTensor>& tensors, std::map<std::string, std::string>& metadata) {
-    tensors.push_back(make_tensor("optim.adam.m", {(int)adam.m.size()}, adam.m.data()));
-    tensors.push_back(make_tensor("optim.adam.v", {(int)adam.v.size()}, adam.v.data()));
-    metadata["optim.adam.step"] = std::to_string(adam.step);
-}
-inline void read_adam(const SafeTensors& st, int param_count, Adam& adam) {
-    const std::string& s = st.meta("optim.adam.step");
-    if (s.empty() || s.size() > 18 || s.find_first_not_of("0123456789") != std::string::npos)
-        throw std::runtime_error(st.source + ": __metadata__['optim.adam.step'] = '" + s + "' is not a step count");
-    read_flat(st, "optim.adam.m", param_count, adam.m);
-    read_flat(st, "optim.adam.v", param_count, adam.v);
-    adam.step = std::stol(s);
-}
-
-// EMA state: tensor optim.ema.shadow (P) and metadata "optim.ema.decay".
-inline void append_ema(const Ema& ema, std::vector<NamedTensor>& tensors, std::map<std::string, std::string>& metadata) {
-    tensors.push_back(make_tensor("optim.ema.shadow", {(int)ema.shadow.size()}, ema.shadow.data()));
-    char buf[32];
-    std::snprintf(buf, sizeof buf, "%.9g", ema.decay);
-    metadata["optim.ema.decay"] = buf;
-}
-inline void read_ema(const SafeTensors& st, int param_count, Ema& ema) {
-    read_flat(st, "optim.ema.shadow", param_count, ema.shadow);
-    const std::string& s = st.meta("optim.ema.decay");
-    char* endp = nullptr;
-    const float d = std::strtof(s.c_str(), &endp);
-    if (s.empty() || *endp != '\0' || !(d >= 0 && d <= 1))
-        throw std::runtime_error(st.source + ": __metadata__['optim.ema.decay'] = '" + s + "' is not a decay in [0, 1]");
-    ema.decay = d;
-}
-
-// RNG state as metadata "<key>" = four decimal words (float tensors cannot hold u64 exactly).
-inline void append_rng(const Rng& rng, const std::string& key, std::map<std::string, std::string>& metadata) {
-    std::string s;
-    for (int i = 0; i < 4; ++i) s += (i ? " " : "") + std::to_string(rng.s[i]);
-    metadata[key] = s;
-}
-inline void read_rng(const SafeTensors& st, const std::string& key, Rng& rng) {
-    const std::string& s = st.meta(key);
-    uint64_t w[4];
-    const char* p = s.c_str();
-    for (int i = 0; i < 4; ++i) {
-        char* endp = nullptr;
-        errno = 0;
-        if (*p < '0' || *p > '9') endp = const_cast<char*>(p);
-        else w[i] = std::strtoull(p, &endp, 10);
-        if (endp == p || errno == ERANGE || (i < 3 ? *endp != ' ' : *endp != '\0'))
-            throw std::runtime_error(st.source + ": __metadata__['" + key + "'] = '" + s.substr(0, 80) + "' is not four 64-bit words");
-        p = endp + (i < 3 ? 1 : 0);
-    }
-    if ((w[0] | w[1] | w[2] | w[3]) == 0) throw std::runtime_error(st.source + ": __metadata__['" + key + "'] is the all-zero state");
-    for (int i = 0; i < 4; ++i) rng.s[i] = w[i];
-}
-
 }  // namespace madbp
 
 // ===== MA-DBP model, diffusion and planner =====
@@ -1775,7 +1732,7 @@ struct ModelConfig {
     WindowMode window = WindowMode::MW;
     float position_scale = 1.2f;       // world units per normalised pose unit (the training world's half-size)
     float window_scale = 0.6f;         // world units per normalised displacement (~ top speed x window time)
-    Prediction prediction = Prediction::X0;  // measured better than the paper's eps here (README)
+    Prediction prediction = Prediction::X0;  // measured better than the paper's eps here (docs/experiments.md)
 
     int levels() const { return (int)channels.size(); }
     int image_tokens() const { return (grid / 8) * (grid / 8); }
@@ -2612,21 +2569,274 @@ inline float predict_x0(float x_k, float eps, double alpha_bar) {
     return (float)((x_k - std::sqrt(1 - alpha_bar) * eps) / std::sqrt(alpha_bar));
 }
 
+// ---------------------------------------------------------------------------------------------
+// Conflict-aware sampling (issue 12): a differentiable cost of a scene's windows (robots too
+// close to each other, robots too close to the map, ends far from the goals) that guides every
+// DDIM step through its gradient on x0_hat and picks the best of k candidate windows. Options
+// of SamplerConfig, off by default.
+
+// Largest SamplerConfig::candidates (the batch grows k-fold).
+constexpr int kMaxCandidates = 64;
+
+// The map's clearance (static_clearance: distance to the nearest obstacle or wall surface,
+// world units, negative inside) sampled at the nodes of a square grid of spacing `cell` over the
+// world and a border of `pad`, read with bilinear interpolation, which also gives the gradient
+// (values continuous; the gradient jumps only across cell lines). Beyond the border a cell's
+// plane is extended. Nodes: (x, y) = (lo + col * cell, lo + row * cell), row-major from the
+// lowest y, at most kMaxNodes a side (a huge world gets coarser cells).
+struct DistanceField {
+    static constexpr int kMaxNodes = 512;
+    int nodes = 0;              // per side; 0 = not built
+    double lo = 0, cell = 0;    // first node's coordinate on both axes; node spacing (world units)
+    Map map;                    // the map it was built from
+    std::vector<float> d;       // (nodes * nodes) clearance at the nodes
+
+    DistanceField() = default;
+    explicit DistanceField(const Map& m, double cell_wanted = 0.02, double pad = 0.2) { build(m, cell_wanted, pad); }
+    void build(const Map& m, double cell_wanted = 0.02, double pad = 0.2) {
+        if (!(cell_wanted > 0) || !(pad >= 0) || !std::isfinite(cell_wanted + pad))
+            throw std::invalid_argument("DistanceField: needs cell > 0 and pad >= 0");
+        const double span = 2 * (m.half_size + pad);
+        nodes = (int)std::min<double>(kMaxNodes, std::ceil(span / cell_wanted) + 1);
+        cell = span / (nodes - 1);
+        lo = -m.half_size - pad;
+        map = m;
+        d.resize((size_t)nodes * nodes);
+        for (int row = 0; row < nodes; ++row)
+            for (int col = 0; col < nodes; ++col) d[(size_t)row * nodes + col] = (float)static_clearance(m, {lo + col * cell, lo + row * cell});
+    }
+    bool built_for(const Map& m) const { return nodes > 0 && m == map; }
+    // Clearance at (x, y), world units; its gradient in *gx, *gy when given.
+    double value(double x, double y, double* gx = nullptr, double* gy = nullptr) const {
+        MADBP_ASSERT(nodes >= 2);
+        const double u = (x - lo) / cell, v = (y - lo) / cell;
+        const int col = std::clamp((int)std::floor(u), 0, nodes - 2), row = std::clamp((int)std::floor(v), 0, nodes - 2);
+        const double fx = u - col, fy = v - row;
+        const float* p = d.data() + (size_t)row * nodes + col;
+        const double d00 = p[0], d10 = p[1], d01 = p[nodes], d11 = p[nodes + 1];
+        if (gx) *gx = ((1 - fy) * (d10 - d00) + fy * (d11 - d01)) / cell;
+        if (gy) *gy = ((1 - fx) * (d01 - d00) + fx * (d11 - d10)) / cell;
+        return (1 - fy) * ((1 - fx) * d00 + fx * d10) + fy * ((1 - fx) * d01 + fx * d11);
+    }
+};
+
+// The cost of one scene's windows, world units. Waypoints of active agent a:
+// P_a(t) = p_a + window_scale * x_a(t), t = 1 .. H-1 (t = 0 is the current position p_a):
+//   agent_weight * sum over pairs a < b and t of max(0, 2 radius + agent_margin - |P_a(t) - P_b(t)|)^2
+// + map_weight   * sum over a and t of max(0, radius + map_margin - clearance(P_a(t)))^2
+// + goal_weight  * sum over a of sqrt(|P_a(H-1) - g_a|^2 + 0.01^2)     (g_a: a's goal)
+// Squared hinges, so the cost is smooth where they switch on. Every field >= 0.
+struct WindowCost {
+    float radius = 0.1f;         // robot radius, world units (WorldConfig::radius)
+    float agent_margin = 0.05f;  // extra distance wanted between two robots' surfaces
+    float map_margin = 0.03f;    // extra distance wanted between a robot's surface and the map
+    float agent_weight = 100.f;
+    float map_weight = 100.f;
+    float goal_weight = 1.f;
+};
+
+// The WindowCost of scene s's windows x (2, H*A) (normalised displacements, agent-major, as
+// sample_windows writes them) in `batch`; the map's clearance comes from `field`. With `grad`
+// (2, H*A), ADDS d cost / d x to the columns of scene s's active agents, t >= 1.
+inline double window_cost(const SceneBatch& batch, int s, const Mat& x, const ModelConfig& c, const WindowCost& w,
+                          const DistanceField& field, Mat* grad = nullptr) {
+    const int n = batch.n, H = c.horizon;
+    const double ps = c.position_scale, ws = c.window_scale;
+    MADBP_ASSERT(s >= 0 && s < batch.B && x.cols() == (long)H * batch.agents());
+    MADBP_ASSERT(!grad || (grad->rows() == 2 && grad->cols() == x.cols()));
+    auto P = [&](int a, int t, int k) { return batch.pose(k, a) * ps + ws * x(k, (long)a * H + t); };
+    auto add = [&](int a, int t, double dx, double dy) {  // d cost / d P -> d cost / d x
+        (*grad)(0, (long)a * H + t) += (float)(ws * dx);
+        (*grad)(1, (long)a * H + t) += (float)(ws * dy);
+    };
+    double cost = 0;
+    const double reach = 2.0 * w.radius + w.agent_margin, keep = (double)w.radius + w.map_margin, smooth2 = 1e-4;
+    for (int i = 0; i < n; ++i) {
+        const int a = s * n + i;
+        if (batch.agent_mask[a] == 0) continue;
+        for (int j = i + 1; j < n; ++j) {  // robots too close to each other
+            const int b = s * n + j;
+            if (batch.agent_mask[b] == 0) continue;
+            for (int t = 1; t < H; ++t) {
+                const double dx = P(a, t, 0) - P(b, t, 0), dy = P(a, t, 1) - P(b, t, 1), dist = std::sqrt(dx * dx + dy * dy);
+                const double h = reach - dist;
+                if (h <= 0) continue;
+                cost += w.agent_weight * h * h;
+                if (grad && dist > 1e-12) {
+                    const double g = -2.0 * w.agent_weight * h / dist;  // d cost / d P_a = g * (P_a - P_b)
+                    add(a, t, g * dx, g * dy);
+                    add(b, t, -g * dx, -g * dy);
+                }
+            }
+        }
+        for (int t = 1; t < H; ++t) {  // robots too close to the map
+            double gx = 0, gy = 0;
+            const double h = keep - field.value(P(a, t, 0), P(a, t, 1), &gx, &gy);
+            if (h <= 0) continue;
+            cost += w.map_weight * h * h;
+            if (grad) add(a, t, -2.0 * w.map_weight * h * gx, -2.0 * w.map_weight * h * gy);
+        }
+        // The window's end far from the goal.
+        const double ex = P(a, H - 1, 0) - batch.pose(2, a) * ps, ey = P(a, H - 1, 1) - batch.pose(3, a) * ps;
+        const double q = std::sqrt(ex * ex + ey * ey + smooth2);
+        cost += w.goal_weight * q;
+        if (grad) add(a, H - 1, w.goal_weight * ex / q, w.goal_weight * ey / q);
+    }
+    return cost;
+}
+
+// The scenes of `src` repeated k times into dst: scene b's copy j is scene b * k + j.
+inline void repeat_scenes(const SceneBatch& src, int k, SceneBatch& dst) {
+    const int B = src.B, n = src.n, Bk = B * k;
+    const long G2 = src.grid.cols() / src.grid_scenes(), L = src.agents() ? src.local.cols() / src.agents() : 0;
+    dst.B = Bk;
+    dst.n = n;
+    dst.shared_grid = src.shared_grid;
+    dst.agent_mask.resize((size_t)Bk * n);
+    dst.slot.resize((size_t)Bk * n);
+    dst.count.resize(Bk);
+    dst.pose.resize(4, (long)Bk * n);
+    dst.grid.resize(1, G2 * dst.grid_scenes());
+    dst.local.resize(1, L * Bk * n);
+    if (src.shared_grid) dst.grid = src.grid;
+    for (int b = 0; b < B; ++b)
+        for (int j = 0; j < k; ++j) {
+            const int d = b * k + j;
+            dst.count[d] = src.count[b];
+            if (!src.shared_grid) dst.grid.middleCols((long)d * G2, G2) = src.grid.middleCols((long)b * G2, G2);
+            for (int i = 0; i < n; ++i) {
+                const int from = b * n + i, to = d * n + i;
+                dst.agent_mask[to] = src.agent_mask[from];
+                dst.slot[to] = src.slot[from];
+                dst.pose.col(to) = src.pose.col(from);
+                if (L) dst.local.middleCols((long)to * L, L) = src.local.middleCols((long)from * L, L);
+            }
+        }
+}
+
+// Workspaces of conflict-aware sampling, reused across draws (no heap allocation once sizes are
+// steady), and after a draw what it chose: the cost of every candidate and the one kept.
+struct ConflictWorkspace {
+    DistanceField field;       // the map's clearance: set_map()
+    SceneBatch batch;          // the scenes repeated k times (repeat_scenes); unused when k = 1
+    Mat x, out, grad;          // (2, H*A*k): every candidate's windows after the draw in x
+    std::vector<int> steps;
+    std::vector<double> cost;  // (B*k) final WindowCost of each candidate, scene b's candidate j at b*k + j
+    std::vector<int> best;     // (B) the candidate kept for each scene: the first of the lowest cost
+    // (Re)builds the distance field when the map differs from the last one.
+    void set_map(const Map& map) {
+        if (!field.built_for(map)) field.build(map);
+    }
+};
+
 // Sampling options (SPEC 6, paper Alg. 2).
 struct SamplerConfig {
     int sample_steps = 10;       // S, DDIM steps (eta = 0), in [1, K]
     float clip = 1.5f;           // x0_hat clipped to [-clip, clip] (normalised displacements; Diffuser's clip_denoised)
     bool goal_inpaint = true;    // pin the window's last waypoint to the goal when it is within reach
     float goal_reach = 0.55f;    // "within reach": distance to goal in world units at most this (see default_goal_reach)
+    // Conflict-aware sampling (issue 12), off by default: with guidance = 0 and candidates = 1
+    // the sampler is the plain DDIM below, bit for bit. Both read the map through a
+    // ConflictWorkspace (sample_windows' last argument; DiffusionPlanner keeps one).
+    float guidance = 0;          // W >= 0: every DDIM step moves each predicted waypoint of x0_hat by
+                                 // -W * d cost / d waypoint (world units; cost: WindowCost)
+    int candidates = 1;          // k in [1, kMaxCandidates]: windows drawn per scene in one batch; the lowest-cost one is kept
+    WindowCost cost;             // the cost both use
+    bool conflict_aware() const { return guidance != 0 || candidates != 1; }
 };
+
+namespace detail {
+// sample_windows with SamplerConfig::guidance and candidates: the batch's scenes repeated k
+// times (repeat_scenes) and denoised together; at every DDIM step the clipped x0_hat takes one
+// gradient step on its WindowCost (scaled so that a waypoint moves -W * d cost / d waypoint
+// world units), clipped again, and the DDIM update uses the guided x0_hat; pins as in plain
+// sampling. Then each scene keeps its lowest-cost candidate: x (2, H*A) of `batch`.
+template <class Denoiser>
+void sample_conflict_aware(Denoiser& model, const NoiseSchedule& schedule, const SceneBatch& batch, const SamplerConfig& sc, Rng& rng,
+                           Mat& x_best, ConflictWorkspace& cw) {
+    const ModelConfig& c = model.config;
+    const int H = c.horizon, B = batch.B, n = batch.n, S = sc.sample_steps, k = sc.candidates;
+    if (S < 1 || S > schedule.K) throw std::invalid_argument("sample_steps: " + std::to_string(S) + " must be in [1, " + std::to_string(schedule.K) + "]");
+    if (k < 1 || k > kMaxCandidates)
+        throw std::invalid_argument("sampler candidates: " + std::to_string(k) + " must be in [1, kMaxCandidates = " + std::to_string(kMaxCandidates) + "]");
+    if (!(sc.guidance >= 0) || !std::isfinite(sc.guidance))
+        throw std::invalid_argument("sampler guidance: must be a finite number >= 0 (got " + std::to_string(sc.guidance) + ")");
+    const WindowCost& wc = sc.cost;
+    for (float v : {wc.radius, wc.agent_margin, wc.map_margin, wc.agent_weight, wc.map_weight, wc.goal_weight})
+        if (!(v >= 0) || !std::isfinite(v)) throw std::invalid_argument("sampler cost: every WindowCost field must be finite and >= 0");
+    if (k > 1) repeat_scenes(batch, k, cw.batch);
+    const SceneBatch& rb = k > 1 ? cw.batch : batch;
+    const int A = rb.agents(), Bk = rb.B;
+    model.encode_context(rb);
+    Mat& x = cw.x;
+    x.resize(2, (long)H * A);
+    for (long j = 0; j < x.size(); ++j) x.data()[j] = (float)rng.normal();
+    auto impose = [&]() {
+        for (int a = 0; a < A; ++a) {
+            auto w = x.middleCols((long)a * H, H);
+            if (rb.agent_mask[a] == 0) { w.setZero(); continue; }
+            w.col(0).setZero();
+            Eigen::Vector2f end;
+            if (sc.goal_inpaint && end_pinned(rb, a, c, sc.goal_reach, &end)) w.col(H - 1) = end;
+        }
+    };
+    impose();
+    cw.steps.resize(Bk);
+    // d x0 = -W / window_scale^2 * d cost / d x0 moves a waypoint by -W * d cost / d P (world units).
+    const float step_size = (float)(sc.guidance / ((double)c.window_scale * c.window_scale));
+    for (int s = S; s >= 1; --s) {
+        const int kd = schedule.ddim_step(s, S), k_prev = schedule.ddim_step(s - 1, S);
+        std::fill(cw.steps.begin(), cw.steps.end(), kd);
+        model.denoise(x, cw.steps.data(), cw.out);
+        const double ab = schedule.alpha_bar[kd], ab_prev = schedule.alpha_bar[k_prev];
+        const float sa = (float)std::sqrt(ab), s1a = (float)std::sqrt(1 - ab);
+        const float sap = (float)std::sqrt(ab_prev), s1ap = (float)std::sqrt(1 - ab_prev);
+        const bool eps_mode = c.prediction == Prediction::Eps;
+        float* x0 = cw.out.data();  // x0_hat replaces the network's output in place
+        for (long j = 0; j < x.size(); ++j) x0[j] = std::clamp(eps_mode ? (x.data()[j] - s1a * x0[j]) / sa : x0[j], -sc.clip, sc.clip);
+        if (sc.guidance > 0) {
+            cw.grad.setZero(2, x.cols());
+            for (int b = 0; b < Bk; ++b) window_cost(rb, b, cw.out, c, wc, cw.field, &cw.grad);
+            for (long j = 0; j < x.size(); ++j) x0[j] = std::clamp(x0[j] - step_size * cw.grad.data()[j], -sc.clip, sc.clip);
+        }
+        for (long j = 0; j < x.size(); ++j) {
+            const float xj = x.data()[j];
+            const float e = (xj - sa * x0[j]) / s1a;  // the noise consistent with the (guided, clipped) x0
+            x.data()[j] = sap * x0[j] + s1ap * e;
+        }
+        impose();
+    }
+    // Best of k: each scene keeps its first lowest-cost candidate.
+    cw.cost.resize(Bk);
+    cw.best.resize(B);
+    for (int b = 0; b < Bk; ++b) cw.cost[b] = window_cost(rb, b, x, c, wc, cw.field);
+    x_best.resize(2, (long)H * B * n);
+    for (int b = 0; b < B; ++b) {
+        int best = 0;
+        for (int j = 1; j < k; ++j)
+            if (cw.cost[(size_t)b * k + j] < cw.cost[(size_t)b * k + best]) best = j;
+        cw.best[b] = best;
+        x_best.middleCols((long)b * n * H, (long)n * H) = x.middleCols((long)(b * k + best) * n * H, (long)n * H);
+    }
+}
+}  // namespace detail
 
 // Draws windows for a batch of scenes with DDIM: x (2, H*A) starts as N(0, I); after every
 // step the pinned waypoints are re-imposed and inactive agents are zeroed (paper Alg. 2).
 // `model.encode_context(batch)` is called here. Output: normalised displacements.
 // Denoiser: MadbpModel, or anything with `config`, encode_context(batch), denoise(x, k, out).
+// With sc.conflict_aware() the draw is guided and/or best-of-k (detail::sample_conflict_aware)
+// and needs `cw` with the map's distance field (ConflictWorkspace::set_map); all scenes of the
+// batch share that map, as the planner's do. `out` is then untouched.
 template <class Denoiser>
 void sample_windows(Denoiser& model, const NoiseSchedule& schedule, const SceneBatch& batch, const SamplerConfig& sc,
-                    Rng& rng, Mat& x, Mat& out, std::vector<int>& step_buf) {
+                    Rng& rng, Mat& x, Mat& out, std::vector<int>& step_buf, ConflictWorkspace* cw = nullptr) {
+    if (sc.conflict_aware()) {
+        if (!cw || cw->field.nodes == 0)
+            throw std::invalid_argument("sampler: guidance and candidates need a ConflictWorkspace holding the map's distance field (set_map)");
+        detail::sample_conflict_aware(model, schedule, batch, sc, rng, x, *cw);
+        return;
+    }
     const ModelConfig& c = model.config;
     const int A = batch.agents(), H = c.horizon, B = batch.B, S = sc.sample_steps;
     if (S < 1 || S > schedule.K) throw std::invalid_argument("sample_steps: " + std::to_string(S) + " must be in [1, " + std::to_string(schedule.K) + "]");
@@ -2688,6 +2898,7 @@ public:
     const ModelConfig& config() const { return model_.config; }
     MadbpModel& model() { return model_; }
     const SceneBatch& last_scene_batch() const { return batch_; }  // what the model saw in the last plan
+    const ConflictWorkspace& last_candidates() const { return conflict_; }  // costs and choices of the last conflict-aware plan
     void reseed(uint64_t seed) { rng_.reseed(seed); }
 
     // A window for all present agents of `world`: waypoints for steps t+1 .. t+(H-1)*stride
@@ -2735,7 +2946,8 @@ public:
             }
             batch_.count[b] = per_scene;
         }
-        sample_windows(model_, schedule_, batch_, sampler, rng_, x_, eps_, steps_);
+        if (sampler.conflict_aware()) conflict_.set_map(world.map());  // the distance field, once per map
+        sample_windows(model_, schedule_, batch_, sampler, rng_, x_, eps_, steps_, &conflict_);
         for (int i = 0; i < n; ++i) {
             out.ids[i] = world.agents()[i].id;
             const long col = local ? (long)i * per_scene : i;  // agent i's window: first of scene i, or column i
@@ -2759,6 +2971,7 @@ private:
     bool grid_valid_ = false;
     Mat x_, eps_;
     std::vector<int> steps_, members_;
+    ConflictWorkspace conflict_;  // guidance and best-of-k (SamplerConfig::guidance, candidates)
 
     // Rasterizes the map only when it changed since the last plan.
     void update_grid(const Map& map) {

@@ -18,21 +18,28 @@
 //   MADBP_ASSERT(cond)   programmer-error check; default: assert(cond).
 //
 // Changelog
+//   0.2  ProgressFn instead of printing; Policy::decision_ms; Map operator==; local_crop here.
 //   0.1  world, maps, controllers.
 
 #ifndef MADBP_SIM_HPP
 #define MADBP_SIM_HPP
 
+// The release of the three headers; madbp.hpp and madbp_train.hpp check that they come from it.
 #define MADBP_VERSION_MAJOR 0
-#define MADBP_VERSION_MINOR 1
+#define MADBP_VERSION_MINOR 2
 #define MADBP_VERSION_PATCH 0
 
 #ifndef MADBP_ASSERT
 #include <cassert>
+#ifdef NDEBUG  // unevaluated, but the condition's variables still count as used (no warnings)
+#define MADBP_ASSERT(cond) ((void)(false && (cond)))
+#else
 #define MADBP_ASSERT(cond) assert(cond)
+#endif
 #endif
 
 #include <chrono>
+#include <functional>
 #include <cmath>
 #include <cstdint>
 #include <cstdio>
@@ -74,36 +81,10 @@ struct Rng {
 };
 
 // ---------------------------------------------------------------------------------------------
-// Progress line for long work: "label  120/1000  37.2/s  ETA 24s" rewritten in place on a
-// terminal (stderr), silent when stderr is not a terminal (CI logs) or when quiet.
-struct ProgressLine {
-    std::string label;
-    long total = 0, done = 0;
-    bool enabled = false;
-    std::chrono::steady_clock::time_point start, last_print;
-
-    ProgressLine(std::string label_, long total_, bool quiet = false)
-        : label(std::move(label_)), total(total_), enabled(!quiet && isatty(2)),
-          start(std::chrono::steady_clock::now()), last_print(start) {}
-    // Advance by `k` units; `extra` is appended (e.g. the current loss).
-    void tick(long k = 1, const std::string& extra = "") {
-        done += k;
-        if (!enabled) return;
-        auto now = std::chrono::steady_clock::now();
-        if (done < total && now - last_print < std::chrono::milliseconds(200)) return;
-        last_print = now;
-        double secs = std::chrono::duration<double>(now - start).count();
-        double rate = secs > 0 ? done / secs : 0;
-        double eta = rate > 0 ? (total - done) / rate : 0;
-        std::fprintf(stderr, "\r%s  %ld/%ld  %.1f/s  ETA %.0fs  %s\033[K", label.c_str(), done,
-                     total, rate, eta, extra.c_str());
-        if (done >= total) std::fprintf(stderr, "\n");
-        std::fflush(stderr);
-    }
-    ~ProgressLine() {
-        if (enabled && done < total) std::fprintf(stderr, "\n");
-    }
-};
+// Progress of long work (evaluation, collection, training): `done` of `total` units and a short
+// note such as the current loss. The library never prints; a caller that wants a progress line
+// passes one (the madbp tool draws "label  120/1000  37.2/s  ETA 24s" on a terminal).
+using ProgressFn = std::function<void(long done, long total, const std::string& note)>;
 
 // Throws std::invalid_argument("<field>: <why>") when a value is not finite.
 inline void require_finite(double v, const std::string& field) {
@@ -135,6 +116,12 @@ inline std::string printable(const std::string& s, size_t max = 64) {
     }
     if (s.size() > max) out += "...";
     return out;
+}
+// A number for an error message, "%.6g": 100, 1e+09, 0.25.
+inline std::string number_text(double v) {
+    char b[32];
+    std::snprintf(b, sizeof b, "%.6g", v);
+    return b;
 }
 
 }  // namespace madbp
@@ -289,12 +276,13 @@ inline bool inside_obstacle(const Map& map, Vec2 p) {
 // Builds a named map. `half_size` (> 0, default 1.2) scales the layouts: obstacle centres
 // are drawn in [-0.8, 0.8]^2 * half_size/1.2 and the obstacle count grows with the area
 // (5 discs at 1.2, 20 at 2.4) so density stays the same; the barrier always spans the
-// world with one gap of width 0.5. Throws std::invalid_argument on an unknown name.
+// world with one gap of width 0.5. Throws std::invalid_argument on an unknown name, a
+// half_size above kMaxHalfSize, or more than kMaxObstacles discs (obstacles beyond ~34).
 inline Map make_map(const std::string& name, Rng& rng, double half_size = 1.2) {
     if (!(half_size > 0.5) || !std::isfinite(half_size))
         throw std::invalid_argument("half_size: must be a finite number > 0.5 (got " + std::to_string(half_size) + ")");
     if (half_size > kMaxHalfSize)
-        throw std::invalid_argument("half_size: " + std::to_string(half_size) + " exceeds the limit kMaxHalfSize = " + std::to_string(kMaxHalfSize));
+        throw std::invalid_argument("half_size: " + number_text(half_size) + " exceeds the limit kMaxHalfSize = " + number_text(kMaxHalfSize));
     double scale = half_size / 1.2;
     Map map;
     map.half_size = half_size;
@@ -303,7 +291,7 @@ inline Map make_map(const std::string& name, Rng& rng, double half_size = 1.2) {
         // 5 discs of radius 0.1 (VMAS "flocking"), >= 0.15 apart surface to surface.
         int count = (int)std::lround(5 * scale * scale);
         if (count > kMaxObstacles)
-            throw std::invalid_argument("obstacles: half_size " + std::to_string(half_size) + " needs " + std::to_string(count) +
+            throw std::invalid_argument("obstacles: half_size " + number_text(half_size) + " needs " + std::to_string(count) +
                                         " discs, over the limit kMaxObstacles = " + std::to_string(kMaxObstacles));
         double lim = 0.8 * scale, r = 0.1, min_gap = 0.15;
         for (int tries = 0; (int)map.discs.size() < count; ++tries) {
@@ -371,8 +359,8 @@ public:
         require_finite(map_.half_size, "map.half_size");
         if (!(map_.half_size > 0)) throw std::invalid_argument("map.half_size: must be > 0");
         if (map_.half_size > kMaxHalfSize)
-            throw std::invalid_argument("map.half_size: " + std::to_string(map_.half_size) + " exceeds the limit kMaxHalfSize = " +
-                                        std::to_string(kMaxHalfSize));
+            throw std::invalid_argument("map.half_size: " + number_text(map_.half_size) + " exceeds the limit kMaxHalfSize = " +
+                                        number_text(kMaxHalfSize));
         if (map_.discs.size() + map_.boxes.size() > (size_t)kMaxObstacles)
             throw std::invalid_argument("map: " + std::to_string(map_.discs.size() + map_.boxes.size()) +
                                         " obstacles exceed the limit kMaxObstacles = " + std::to_string(kMaxObstacles));
@@ -640,6 +628,280 @@ struct WorldBatch {
 };
 
 // =============================================================================================
+// Section 4b. Interaction scenes (issue 12)
+// =============================================================================================
+// Randomised scenes in which robots must get past each other, for demonstrations (`madbp
+// collect --scenarios`) and evaluation (`madbp eval --scenario NAME`). Each draws the named map
+// from the seed as make_random_world does, then a layout on it (L = half_size / 1.2 scales
+// every length; "rotated" = a uniform angle, or one of the 4 axis directions where walls are
+// added, since walls are axis-aligned boxes):
+//   swap      head-on swaps: ceil(n/2) robots at one end of 1-2 parallel lanes, floor(n/2) at
+//             the other, each robot going to the far end of its lane (lanes 1.0-1.8 L long,
+//             0.3-0.45 apart; exact swaps of start and goal); random centre and rotation.
+//   cross     a plus sign: arms of 0.5-0.85 L from a random centre, rotated; N <-> S and
+//             E <-> W (n < 4: the first n of N->S, E->W, S->N, W->E).
+//   gap       swaps through a wall's gap: on the barrier map its own gap; on the others a wall
+//             (thickness 0.1) with a gap of 0.45-0.6 is added across the world (horizontal or
+//             vertical, discs near it removed). Robots 0.25-0.75 L from the wall swap with
+//             their point reflections through the gap's centre.
+//   corridor  swaps through a corridor: two walls (thickness 0.1) 0.4-0.6 apart and 0.5-1.0 L
+//             long (axis-aligned, random centre; discs near it removed; on the barrier map it
+//             runs through the gap, at most the gap's width), ceil(n/2) robots queued outside
+//             one end and floor(n/2) outside the other, exact swaps.
+//   parked    robots parked on their goals (start = goal) on the path of the movers: one mover
+//             (n <= 2) or a head-on pair (n >= 3) along a rotated line of 1.2-1.8 L, the other
+//             robots parked between, up to 0.05 off the line.
+//   circle    antipodal swaps on a circle of radius 0.6-1.0 L (random centre, angles evenly
+//             spaced from a random one, each jittered by up to 0.1 rad).
+// Every scene is checked and redrawn (at most kMaxScenarioTries draws, then std::runtime_error):
+// starts >= 0.25 apart, goals >= 0.25 apart (a start may equal another robot's goal), every
+// start and goal >= radius + 0.06 from every obstacle and wall surface, and every goal reachable
+// from its start on the guided expert's planning grid (cells of ~0.036, clearance >= 0.13 at cell
+// centres: the wavefront of Section 12). n is in [1, kMaxScenarioAgents].
+constexpr int kMaxScenarioTries = 2000;
+constexpr int kMaxScenarioAgents = 4;
+
+inline const std::vector<std::string>& interaction_scenarios() {
+    static const std::vector<std::string> names = {"swap", "cross", "gap", "corridor", "parked", "circle"};
+    return names;
+}
+
+namespace detail {
+// Cells of ~`cell` over the world whose centre has clearance >= min_clear, as ClearanceGrid and
+// wavefront (Section 12) lay them out; reach(a, b): a breadth-first search in 8 directions from
+// b's cell (always allowed) reaches a's cell.
+struct ReachGrid {
+    int n = 0;
+    double half = 1.2, cell = 0.036, min_clear = 0.13;
+    std::vector<uint8_t> free;
+    std::vector<int> queue, seen;
+    ReachGrid(const Map& map, double cell_wanted = 0.036, double min_clear_ = 0.13) : half(map.half_size), min_clear(min_clear_) {
+        n = (int)std::min(std::max(2.0, std::round(2 * half / cell_wanted)), (double)kExpertMaxGridSide);
+        cell = 2 * half / n;
+        free.resize((size_t)n * n);
+        for (int k = 0; k < n * n; ++k)
+            free[k] = static_clearance(map, {-half + (k % n + 0.5) * cell, -half + (k / n + 0.5) * cell}) >= min_clear;
+    }
+    int index(Vec2 p) const {
+        int col = std::clamp((int)std::floor((p.x + half) / cell), 0, n - 1);
+        int row = std::clamp((int)std::floor((p.y + half) / cell), 0, n - 1);
+        return row * n + col;
+    }
+    bool reach(Vec2 from, Vec2 to) {
+        const int goal = index(to), start = index(from);
+        if (start == goal) return true;
+        seen.assign((size_t)n * n, 0);
+        queue.assign(1, goal);
+        seen[goal] = 1;
+        for (size_t head = 0; head < queue.size(); ++head) {
+            const int k = queue[head], row = k / n, col = k % n;
+            for (int dr = -1; dr <= 1; ++dr)
+                for (int dc = -1; dc <= 1; ++dc) {
+                    const int r2 = row + dr, c2 = col + dc;
+                    if ((dr == 0 && dc == 0) || r2 < 0 || r2 >= n || c2 < 0 || c2 >= n) continue;
+                    const int k2 = r2 * n + c2;
+                    if (seen[k2] || !free[k2]) continue;
+                    if (k2 == start) return true;
+                    seen[k2] = 1;
+                    queue.push_back(k2);
+                }
+        }
+        return false;
+    }
+};
+
+// Distance between two boxes' surfaces (0 when they touch or overlap).
+inline double box_gap(const Box& a, const Box& b) {
+    const double dx = std::max({0.0, a.lo.x - b.hi.x, b.lo.x - a.hi.x}), dy = std::max({0.0, a.lo.y - b.hi.y, b.lo.y - a.hi.y});
+    return std::sqrt(dx * dx + dy * dy);
+}
+// A box given in a frame rotated by quarter turns q (0..3) about the origin, then shifted by c.
+inline Box turned_box(Vec2 lo, Vec2 hi, int q, Vec2 c) {
+    auto turn = [&](Vec2 p) {
+        for (int i = 0; i < q; ++i) p = perp(p);
+        return p + c;
+    };
+    const Vec2 a = turn(lo), b = turn(hi);
+    return {{std::min(a.x, b.x), std::min(a.y, b.y)}, {std::max(a.x, b.x), std::max(a.y, b.y)}};
+}
+// Adds walls to a map: drops the discs closer than `keep_off` (surface to surface) to any of
+// them; false when a wall pokes out of the world or (with check_boxes) comes closer than
+// `keep_off` to an existing box.
+inline bool add_walls(Map& map, const std::vector<Box>& walls, double keep_off, bool check_boxes = true) {
+    for (const Box& w : walls) {
+        if (w.lo.x < -map.half_size || w.hi.x > map.half_size || w.lo.y < -map.half_size || w.hi.y > map.half_size) return false;
+        if (check_boxes)
+            for (const Box& b : map.boxes) if (box_gap(w, b) < keep_off) return false;
+    }
+    std::vector<Disc> kept;
+    for (const Disc& d : map.discs) {
+        bool near = false;
+        for (const Box& w : walls) near = near || box_distance(w, d.c) - d.r < keep_off;
+        if (!near) kept.push_back(d);
+    }
+    map.discs = std::move(kept);
+    map.boxes.insert(map.boxes.end(), walls.begin(), walls.end());
+    return true;
+}
+// The checks of Section 4b on one drawn layout.
+inline bool interaction_scene_valid(const Map& map, const std::vector<Vec2>& starts, const std::vector<Vec2>& goals, double radius) {
+    const double min_sep = 0.25, min_clear = radius + 0.06;
+    for (size_t i = 0; i < starts.size(); ++i) {
+        if (!std::isfinite(starts[i].x + starts[i].y + goals[i].x + goals[i].y)) return false;
+        if (static_clearance(map, starts[i]) < min_clear || static_clearance(map, goals[i]) < min_clear) return false;
+        for (size_t j = 0; j < i; ++j)
+            if (norm(starts[i] - starts[j]) < min_sep || norm(goals[i] - goals[j]) < min_sep) return false;
+    }
+    ReachGrid grid(map);
+    for (size_t i = 0; i < starts.size(); ++i)
+        if (!grid.reach(starts[i], goals[i])) return false;
+    return true;
+}
+}  // namespace detail
+
+// A scene of the named interaction scenario (see above) on the named map, for n robots, all drawn
+// from `seed`. Throws std::invalid_argument on an unknown scenario or map name or n outside
+// [1, kMaxScenarioAgents], std::runtime_error when no valid layout was found.
+inline World make_interaction_world(const std::string& scenario, const std::string& map_name, int n, uint64_t seed,
+                                    double half_size = 1.2, WorldConfig cfg = WorldConfig{}) {
+    const auto& names = interaction_scenarios();
+    if (std::find(names.begin(), names.end(), scenario) == names.end())
+        throw std::invalid_argument("scenario: unknown scenario '" + printable(scenario) +
+                                    "' (expected swap, cross, gap, corridor, parked or circle)");
+    if (n < 1 || n > kMaxScenarioAgents)
+        throw std::invalid_argument("scenario " + scenario + ": agents must be in [1, " + std::to_string(kMaxScenarioAgents) + "] (got " +
+                                    std::to_string(n) + ")");
+    Rng rng(seed);
+    const Map base = make_map(map_name, rng, half_size);
+    const double L = half_size / 1.2, r = cfg.radius, t = 0.05;  // t: half a wall's thickness
+    const double pi = std::acos(-1.0);
+    auto dir = [](double a) { return Vec2{std::cos(a), std::sin(a)}; };
+    for (int tries = 0; tries < kMaxScenarioTries; ++tries) {
+        Map map = base;
+        std::vector<Vec2> s, g;
+        const Vec2 c{rng.uniform(-0.5, 0.5) * L, rng.uniform(-0.5, 0.5) * L};
+        if (scenario == "swap") {
+            const Vec2 u = dir(rng.uniform(0, 2 * pi)), v = perp(u);
+            const double len = rng.uniform(1.0, 1.8) * L, gap = rng.uniform(0.3, 0.45);
+            const int lanes = (n + 1) / 2;
+            for (int i = 0; i < n; ++i) {
+                const int lane = i % lanes, side = i < lanes ? -1 : 1;
+                const Vec2 off = v * ((lane - 0.5 * (lanes - 1)) * gap);
+                s.push_back(c + off + u * (side * 0.5 * len));
+                g.push_back(c + off - u * (side * 0.5 * len));
+            }
+        } else if (scenario == "cross") {
+            const Vec2 u = dir(rng.uniform(0, 2 * pi)), v = perp(u);
+            const Vec2 arms[4] = {v, u, v * -1.0, u * -1.0};  // N, E, S, W
+            double len[4];
+            for (double& a : len) a = rng.uniform(0.5, 0.85) * L;
+            for (int i = 0; i < n; ++i) {  // N->S, E->W, S->N, W->E
+                s.push_back(c + arms[i] * len[i]);
+                g.push_back(c + arms[(i + 2) % 4] * len[(i + 2) % 4]);
+            }
+        } else if (scenario == "gap" || scenario == "corridor") {
+            // A frame turned by q quarter turns: the passage runs along its y axis (gap) or x axis (corridor).
+            int q = (int)(rng.next_u64() % 4);
+            Vec2 gc;          // the passage's centre
+            double reach;     // how far from the centre along the passage robots start
+            if (scenario == "gap") {
+                if (map_name == "barrier" && map.boxes.size() == 2) {
+                    q = 0;
+                    gc = {0.5 * (map.boxes[0].hi.x + map.boxes[1].lo.x), 0};
+                } else {
+                    const double half_gap = 0.5 * rng.uniform(0.45, 0.6), along = rng.uniform(-0.5, 0.5) * L, at = rng.uniform(-0.3, 0.3) * L;
+                    const double h = map.half_size;
+                    // In the turned frame the wall runs along x at y = at, the gap at x = along.
+                    std::vector<Box> walls = {detail::turned_box({-h - 1, at - t}, {along - half_gap, at + t}, q, {0, 0}),
+                                              detail::turned_box({along + half_gap, at - t}, {h + 1, at + t}, q, {0, 0})};
+                    for (Box& w : walls) {  // clip to the world
+                        w.lo = clamp_box(w.lo, h);
+                        w.hi = clamp_box(w.hi, h);
+                    }
+                    if (!detail::add_walls(map, walls, 0.25)) continue;
+                    gc = Vec2{along, at};
+                    for (int i = 0; i < q; ++i) gc = perp(gc);
+                }
+                reach = 0;
+            } else {
+                // On the barrier map the corridor runs through the gap, its walls meeting the barrier's.
+                const bool through_gap = map_name == "barrier" && map.boxes.size() == 2;
+                double half_w = 0.5 * rng.uniform(0.4, 0.6);
+                const double half_len = 0.5 * rng.uniform(0.5, 1.0) * L;
+                gc = c;
+                if (through_gap) {
+                    q = 1;
+                    half_w = std::min(half_w, 0.5 * (map.boxes[1].lo.x - map.boxes[0].hi.x));
+                    gc = {0.5 * (map.boxes[0].hi.x + map.boxes[1].lo.x), 0};
+                }
+                std::vector<Box> walls = {detail::turned_box({-half_len, half_w}, {half_len, half_w + 2 * t}, q, gc),
+                                          detail::turned_box({-half_len, -half_w - 2 * t}, {half_len, -half_w}, q, gc)};
+                if (!detail::add_walls(map, walls, 0.25, /*check boxes*/ !through_gap)) continue;
+                reach = half_len;
+            }
+            // Unit vectors of the turned frame: `a` along the passage, `b` across it.
+            Vec2 a = scenario == "gap" ? Vec2{0, 1} : Vec2{1, 0};
+            for (int i = 0; i < q; ++i) a = perp(a);
+            const Vec2 b = perp(a);
+            const int first = (n + 1) / 2;
+            if (scenario == "gap") {
+                // Pairs of point reflections through the gap's centre; an odd robot goes to its own reflection.
+                for (int i = 0; i < first; ++i) {
+                    const Vec2 p = gc + a * (rng.uniform(0.25, 0.75) * L) + b * (rng.uniform(-0.5, 0.5) * L);
+                    s.push_back(p);
+                    g.push_back(gc * 2.0 - p);
+                }
+                for (int i = first; i < n; ++i) {
+                    s.push_back(g[i - first]);
+                    g.push_back(s[i - first]);
+                }
+            } else {
+                // Queues outside both ends, 0.3 apart; robot i of one end swaps with robot i of the other.
+                const double lead = reach + rng.uniform(0.2, 0.35);
+                for (int i = 0; i < first; ++i) {
+                    const Vec2 p = gc - a * (lead + 0.3 * i) + b * rng.uniform(-0.05, 0.05);
+                    s.push_back(p);
+                    g.push_back(gc * 2.0 - p);
+                }
+                for (int i = first; i < n; ++i) {
+                    s.push_back(g[i - first]);
+                    g.push_back(s[i - first]);
+                }
+            }
+        } else if (scenario == "parked") {
+            const Vec2 u = dir(rng.uniform(0, 2 * pi)), v = perp(u);
+            const double len = rng.uniform(1.2, 1.8) * L;
+            const int movers = n >= 3 ? 2 : 1, parked = n - movers;
+            s.push_back(c - u * (0.5 * len));
+            g.push_back(c + u * (0.5 * len));
+            if (movers == 2) {
+                s.push_back(g[0]);
+                g.push_back(s[0]);
+            }
+            for (int i = 0; i < parked; ++i) {
+                const double f = (i + 1.0) / (parked + 1) + rng.uniform(-0.08, 0.08);
+                const Vec2 p = c + u * ((f - 0.5) * len) + v * rng.uniform(-0.05, 0.05);
+                s.push_back(p);
+                g.push_back(p);
+            }
+        } else {  // circle
+            const double R = rng.uniform(0.6, 1.0) * L, a0 = rng.uniform(0, 2 * pi);
+            for (int i = 0; i < n; ++i) {
+                const Vec2 p = c + dir(a0 + 2 * pi * i / n + rng.uniform(-0.1, 0.1)) * R;
+                s.push_back(p);
+                g.push_back(c * 2.0 - p);
+            }
+        }
+        if (!detail::interaction_scene_valid(map, s, g, r)) continue;
+        World world(map, cfg);
+        for (int i = 0; i < n; ++i) world.add_agent(s[i], g[i]);
+        return world;
+    }
+    throw std::runtime_error("scenario " + scenario + " on " + map_name + " with " + std::to_string(n) + " agents (seed " + std::to_string(seed) +
+                             "): no valid layout in " + std::to_string(kMaxScenarioTries) + " draws");
+}
+
+// =============================================================================================
 // Section 5. Occupancy grid (SPEC 2)
 // =============================================================================================
 
@@ -776,7 +1038,7 @@ inline Scene parse_scene(const std::string& text, const std::string& source = "s
                 fail(line_no, "'world' must come before obstacles and agents");
             if (!(v[0] > 2 * radius)) fail(line_no, "world half-size must be > " + std::to_string(2 * radius));
             if (v[0] > kMaxHalfSize)
-                fail(line_no, "world half-size " + printable(tok[1]) + " exceeds the limit kMaxHalfSize = " + std::to_string(kMaxHalfSize));
+                fail(line_no, "world half-size " + printable(tok[1]) + " exceeds the limit kMaxHalfSize = " + number_text(kMaxHalfSize));
             scene.map.half_size = v[0];
             world_seen = true;
         } else if (kw != "agent" && scene.map.discs.size() + scene.map.boxes.size() >= (size_t)kMaxObstacles) {
@@ -881,8 +1143,10 @@ inline World make_world(const Scene& scene, WorldConfig cfg = WorldConfig{}) {
 struct Policy {
     virtual ~Policy() = default;
     virtual std::vector<Vec2> act(const World& world) = 0;
-    // Mean wall time of one plan in milliseconds so far (0 for reactive controllers).
-    virtual double plan_ms() const { return 0; }
+    // Mean wall time of one decision in milliseconds so far: one plan for a planner (a
+    // PlanFollower replans every m steps), one act() for a timed reactive policy (MAPPO,
+    // MADiff); 0 when not measured.
+    virtual double decision_ms() const { return 0; }
 };
 
 // The world's motion without contacts over one step with a constant force u, exactly:
@@ -915,7 +1179,7 @@ struct StepModel {
 // and the QP is: minimise |u|^2 + w s^2 s.t. |u_i| <= 1, LfV + LgV.u + eps V + s <= 0.
 // VMAS's HeuristicPolicy is c_ev = 0.5, c_vv = 1, eps = 0.2, w = 100, no drag term; it reaches
 // no goal within 100 steps (SPEC 3.1 "measured fact"). Our defaults are SPEC 3.1's
-// suggestion plus drag in LfV; a 48-setting sweep found none better beyond the noise (README).
+// suggestion plus drag in LfV; a 48-setting sweep found none better beyond the noise (docs/experiments.md).
 // It ignores other agents and obstacles (that is the point of the baseline).
 struct ClfQpParams {
     double c_ev = 1.0;           // weight of the e*v cross term in V, >= 0, 1/s
@@ -1177,7 +1441,7 @@ public:
         if (cfg_.safety_filter) u = safety_filter(world, u, cfg_.filter);
         return u;
     }
-    double plan_ms() const override { return plans_ ? total_ms_ / plans_ : 0; }
+    double decision_ms() const override { return plans_ ? total_ms_ / plans_ : 0; }
     int plans() const { return plans_; }
     const Plan& plan() const { return plan_; }
 
@@ -1227,7 +1491,7 @@ struct EpisodeResult {
     int steps = 0;               // steps to success, or steps taken when it failed
     int agents = 0;              // agents present at the end
     long agent_collisions = 0, obstacle_collisions = 0;
-    double plan_ms = 0;          // the policy's mean plan time
+    double decision_ms = 0;      // the policy's mean time per decision (Policy::decision_ms)
     EpisodeLog log;              // filled when recording
     long collisions() const { return agent_collisions + obstacle_collisions; }
 };
@@ -1255,7 +1519,7 @@ inline EpisodeResult run_episode(World& world, Policy& policy, bool record = fal
     r.agents = world.size();
     r.agent_collisions = m.agent_collisions;
     r.obstacle_collisions = m.obstacle_collisions;
-    r.plan_ms = policy.plan_ms();
+    r.decision_ms = policy.decision_ms();
     return r;
 }
 
@@ -1270,8 +1534,9 @@ struct EvalConfig {
     uint64_t seed = 0;           // episode i uses seed + i (SPEC 10)
     double half_size = 1.2;      // world half-size for random maps
     const Scene* scene = nullptr;  // a fixed problem; then seeds vary only the policy's randomness
+    std::string scenario;        // an interaction scenario (make_interaction_world) on `map` instead of random spawns
     int threads = 1;             // episodes run in parallel
-    bool quiet = false;          // no progress line
+    ProgressFn progress;         // called after each episode (optional)
     WorldConfig world;
 };
 struct EvalResult {
@@ -1280,11 +1545,13 @@ struct EvalResult {
     double collisions = 0;               // per episode (agent-agent + agent-static)
     double agent_collisions = 0, obstacle_collisions = 0;  // per episode
     double steps = 0;                    // mean steps of successful episodes (NaN if none)
-    double plan_ms = 0;                  // mean of the episodes' mean plan times
+    double decision_ms = 0;              // mean of the episodes' mean decision times
     std::vector<EpisodeResult> runs;     // per episode, without logs
 };
 inline World make_episode_world(const EvalConfig& c, uint64_t seed) {
-    return c.scene ? make_world(*c.scene, c.world) : make_random_world(c.map, c.agents, seed, c.half_size, c.world);
+    if (c.scene) return make_world(*c.scene, c.world);
+    if (!c.scenario.empty()) return make_interaction_world(c.scenario, c.map, c.agents, seed, c.half_size, c.world);
+    return make_random_world(c.map, c.agents, seed, c.half_size, c.world);
 }
 inline EvalResult evaluate(const EvalConfig& c, const PolicyFactory& factory) {
     if (c.episodes < 1) throw std::invalid_argument("episodes: must be >= 1 (got " + std::to_string(c.episodes) + ")");
@@ -1292,7 +1559,7 @@ inline EvalResult evaluate(const EvalConfig& c, const PolicyFactory& factory) {
     EvalResult r;
     r.episodes = c.episodes;
     r.runs.resize(c.episodes);
-    ProgressLine progress("eval " + (c.scene ? std::string("scene") : c.map) + " n=" + std::to_string(c.agents), c.episodes, c.quiet);
+    long done = 0;
     std::string error;
 #pragma omp parallel for schedule(dynamic) num_threads(std::max(1, c.threads))
     for (int e = 0; e < c.episodes; ++e) {
@@ -1305,7 +1572,7 @@ inline EvalResult evaluate(const EvalConfig& c, const PolicyFactory& factory) {
             if (error.empty()) error = "episode with seed " + std::to_string(c.seed + e) + ": " + ex.what();
         }
 #pragma omp critical
-        progress.tick();
+        if (c.progress) c.progress(++done, c.episodes, "");
     }
     if (!error.empty()) throw std::runtime_error(error);
     int wins = 0;
@@ -1315,7 +1582,7 @@ inline EvalResult evaluate(const EvalConfig& c, const PolicyFactory& factory) {
         if (e.success) steps += e.steps;
         r.agent_collisions += e.agent_collisions;
         r.obstacle_collisions += e.obstacle_collisions;
-        r.plan_ms += e.plan_ms;
+        r.decision_ms += e.decision_ms;
     }
     double N = c.episodes;
     r.success = wins / N;
@@ -1324,7 +1591,7 @@ inline EvalResult evaluate(const EvalConfig& c, const PolicyFactory& factory) {
     r.obstacle_collisions /= N;
     r.collisions = r.agent_collisions + r.obstacle_collisions;
     r.steps = wins ? steps / wins : std::numeric_limits<double>::quiet_NaN();
-    r.plan_ms /= N;
+    r.decision_ms /= N;
     return r;
 }
 
@@ -1412,7 +1679,7 @@ struct ExpertParams {
     int hold = 1;                 // a planned position stays reserved from one step before to `hold` steps after, for lag
     int replan_every = 5;         // steps between plans, >= 1
     double replan_error = 0.1;    // replan early when an agent is this far from its waypoint, world units
-    int extra_horizon = 20;       // plans may run this many steps past the episode's step limit
+    int extra_horizon = 20;       // plans may run this many steps past the episode's step limit, [0, kExpertMaxHorizon]
     int max_expansions = 200000;  // A* budget per agent and plan
     double priority_weight = 4;   // safety-filter weight of the highest-priority agent (the lowest has 1), >= 1
     TrackerParams tracker;
@@ -1452,7 +1719,7 @@ public:
         }
         return safety_filter(world, u, prm_.filter, weight);
     }
-    double plan_ms() const override { return plans_ ? total_ms_ / plans_ : 0; }
+    double decision_ms() const override { return plans_ ? total_ms_ / plans_ : 0; }
     // The current plan: waypoints of every agent from the step it was made.
     const Plan& plan() const { return plan_; }
     // The planning grid (its side n <= kExpertMaxGridSide).

@@ -19,11 +19,32 @@
 //   madbp::train_madiff(demos, dc, dt);                        // MADiff baseline (SPEC 3.4)
 //
 // Configuration macros: none beyond madbp.hpp's.
+//
+// Changelog
+//   0.2  TrainState: one resumable-state scaffold with run identity for train, train_mappo and
+//        train_madiff; Curve records (the tool draws the charts); ProgressFn; grad_clip names.
+//   0.1  demonstrations, datasets, losses, training, MAPPO, MADiff.
+//
+// Contents (SPEC sections of docs/design.md in brackets)
+//   1 demonstrations: Demonstration, DemoSet, CollectConfig, collect_demonstrations       [7]
+//   2 datasets: demos_bytes, save_demos, load_demos, validate_demos                        [11]
+//   3 losses: boundary_loss, temporal_loss, collision_loss                                  [7]
+//   4 training batches: TrainConfig, TrainBatch, make_train_batch, make_windows             [7]
+//   5 the loss: LossTerms, diffusion_loss                                                   [7]
+//   6 training scaffold: optimizer-state I/O (append/read_adam, _ema, _rng), Curve,
+//     content_hash, TrainState (identity, resume, atomic state files)                      [11, 12]
+//   7 training: TrainReport, curriculum_agents, train_identity, train                       [7]
+//   8 MAPPO: observations, MappoNet, PPO loss, MappoConfig, train_mappo, MappoPolicy        [3.3]
+//   9 MADiff: MadiffConfig, InverseDynamics, MadiffModel, data, loss, train_madiff,
+//     MadiffPolicy                                                                          [3.4]
 
 #ifndef MADBP_TRAIN_HPP
 #define MADBP_TRAIN_HPP
 
 #include "madbp.hpp"
+#if MADBP_VERSION_MAJOR != 0 || MADBP_VERSION_MINOR != 2
+#error "madbp_train.hpp is release 0.2; the madbp.hpp it includes is another release"
+#endif
 
 #include <array>
 #include <cstring>
@@ -68,8 +89,26 @@ struct CollectConfig {
     uint64_t seed = 0;            // episode e of a cell uses seed + e + 100000 * (cell index)
     bool successful_only = true;  // keep only episodes the demonstrator solved
     int threads = 1;
-    bool quiet = false;
+    ProgressFn progress;          // called after each episode (optional)
+    // Interaction scenes (madbp_sim.hpp Section 4b) mixed into every cell of n <= kMaxScenarioAgents:
+    // {scenario, fraction of the cell's episodes}, fractions >= 0 summing to <= 1; the rest are
+    // random spawns. Episode e of E takes the first scenario whose cumulative fraction exceeds
+    // (e + 0.5) / E, with the same seed as a random spawn would; its map_name is "<map>/<scenario>".
+    // Empty (default): random spawns only, as before.
+    std::vector<std::pair<std::string, double>> scenarios;
 };
+
+// The scenario of episode e of a cell of `episodes` (CollectConfig::scenarios); "" = random spawns.
+inline std::string collect_scenario(const CollectConfig& c, int n, int e) {
+    if (n > kMaxScenarioAgents) return "";
+    const double u = (e + 0.5) / c.episodes;
+    double cum = 0;
+    for (const auto& s : c.scenarios) {
+        cum += s.second;
+        if (u < cum) return s.first;
+    }
+    return "";
+}
 
 // Runs the demonstrator and records every step (positions, velocities, actions).
 inline Demonstration record_demonstration(World& world, Policy& policy, const std::string& map_name) {
@@ -100,10 +139,19 @@ inline Demonstration record_demonstration(World& world, Policy& policy, const st
 inline DemoSet collect_demonstrations(const CollectConfig& c, const DemonstratorFactory& factory, const std::string& name) {
     if (c.episodes < 1) throw std::invalid_argument("episodes: must be >= 1");
     if (c.n_train_max < 1 || c.n_train_max > 64) throw std::invalid_argument("n_train_max: must be in [1, 64]");
+    double total = 0;
+    for (const auto& s : c.scenarios) {
+        const auto& names = interaction_scenarios();
+        if (std::find(names.begin(), names.end(), s.first) == names.end())
+            throw std::invalid_argument("scenarios: unknown scenario '" + printable(s.first) + "' (expected swap, cross, gap, corridor, parked or circle)");
+        if (!(s.second >= 0) || !std::isfinite(s.second)) throw std::invalid_argument("scenarios: fraction of '" + s.first + "' must be >= 0");
+        total += s.second;
+    }
+    if (total > 1 + 1e-9) throw std::invalid_argument("scenarios: fractions sum to " + std::to_string(total) + " > 1");
     DemoSet set;
     set.demonstrator = name;
     const int cells = (int)c.maps.size() * c.n_train_max;
-    ProgressLine progress("collect", (long)cells * c.episodes, c.quiet);
+    long done = 0;
     for (int m = 0; m < (int)c.maps.size(); ++m)
         for (int n = 1; n <= c.n_train_max; ++n) {
             const int cell = m * c.n_train_max + (n - 1);
@@ -113,15 +161,16 @@ inline DemoSet collect_demonstrations(const CollectConfig& c, const Demonstrator
             for (int e = 0; e < c.episodes; ++e) {
                 try {
                     const uint64_t seed = c.seed + e + 100000ull * cell;
-                    World w = make_random_world(c.maps[m], n, seed);
+                    const std::string scenario = collect_scenario(c, n, e);
+                    World w = scenario.empty() ? make_random_world(c.maps[m], n, seed) : make_interaction_world(scenario, c.maps[m], n, seed);
                     std::unique_ptr<Policy> policy = factory(w, seed);
-                    got[e] = record_demonstration(w, *policy, c.maps[m]);
+                    got[e] = record_demonstration(w, *policy, scenario.empty() ? c.maps[m] : c.maps[m] + "/" + scenario);
                 } catch (const std::exception& ex) {
 #pragma omp critical
                     if (error.empty()) error = ex.what();
                 }
 #pragma omp critical
-                progress.tick();
+                if (c.progress) c.progress(++done, (long)cells * c.episodes, "");
             }
             if (!error.empty()) throw std::runtime_error("collect: " + error);
             for (Demonstration& d : got)
@@ -131,7 +180,7 @@ inline DemoSet collect_demonstrations(const CollectConfig& c, const Demonstrator
 }
 
 // ---------------------------------------------------------------------------------------------
-// Dataset file (little-endian binary; documented in README "Dataset format"):
+// Dataset file (little-endian binary; documented in docs/formats.md):
 //   "MADBPDS1", u32 version = 1, string demonstrator, u32 episode count, then per episode:
 //   string map_name, f64 half_size, u32 discs + discs * (f64 cx, cy, r),
 //   u32 boxes + boxes * (f64 x0, y0, x1, y1), u32 agents, u32 steps, u8 success,
@@ -189,7 +238,8 @@ struct ByteReader {
 };
 }  // namespace detail
 
-inline void save_demos(const std::string& path, const DemoSet& set) {
+// The dataset file's bytes (save_demos writes them; train hashes them into a run's identity).
+inline std::vector<uint8_t> demos_bytes(const DemoSet& set) {
     detail::ByteWriter w;
     w.bytes.insert(w.bytes.end(), {'M', 'A', 'D', 'B', 'P', 'D', 'S', '1'});
     w.put<uint32_t>(1);
@@ -210,8 +260,9 @@ inline void save_demos(const std::string& path, const DemoSet& set) {
         w.vecs(d.vel);
         w.vecs(d.act);
     }
-    write_file_atomic(path, w.bytes);
+    return std::move(w.bytes);
 }
+inline void save_demos(const std::string& path, const DemoSet& set) { write_file_atomic(path, demos_bytes(set)); }
 
 // Semantic checks of a dataset (load_demos runs them with n_max = kMaxDatasetAgents; `madbp
 // train` again with the model's n_max): per episode 1 <= agents <= n_max, 1 <= steps, array sizes
@@ -283,8 +334,8 @@ inline DemoSet parse_demos(const uint8_t* data, size_t size, const std::string& 
         d.map_name = r.str("map_name", 256);
         d.map.half_size = r.finite(r.get<double>("half_size"), "half_size");
         if (!(d.map.half_size > 0.2 && d.map.half_size <= kMaxHalfSize))
-            r.fail("episode " + std::to_string(e) + ": half_size " + std::to_string(d.map.half_size) + " outside (0.2, kMaxHalfSize = " +
-                   std::to_string(kMaxHalfSize) + "]");
+            r.fail("episode " + std::to_string(e) + ": half_size " + number_text(d.map.half_size) + " outside (0.2, kMaxHalfSize = " +
+                   number_text(kMaxHalfSize) + "]");
         const uint32_t discs = r.get<uint32_t>("discs");
         if (discs > (uint32_t)kMaxObstacles)
             r.fail("episode " + std::to_string(e) + ": discs = " + std::to_string(discs) + " exceed kMaxObstacles = " + std::to_string(kMaxObstacles));
@@ -321,7 +372,9 @@ inline DemoSet parse_demos(const uint8_t* data, size_t size, const std::string& 
                    " agents (truncated)");
         d.agents = (int)agents;
         d.steps = (int)steps;
-        d.success = r.get<uint8_t>("success") != 0;
+        const uint8_t success = r.get<uint8_t>("success");
+        if (success > 1) r.fail("episode " + std::to_string(e) + ": success byte " + std::to_string(success) + " is not 0 or 1");
+        d.success = success == 1;
         r.vecs(d.goals, agents, "goals");
         r.vecs(d.pos, (size_t)(steps + 1) * agents, "pos");
         r.vecs(d.vel, (size_t)(steps + 1) * agents, "vel");
@@ -346,7 +399,9 @@ inline DemoSet load_demos(const std::string& path) {
 // do not dominate). mask (A): 1 = active agent.
 
 // Smooth Euclidean norm (differentiable at 0) and its gradient factor.
+namespace detail {
 inline float smooth_norm(float x, float y) { return std::sqrt(x * x + y * y + 1e-8f); }
+}  // namespace detail
 
 // L_boundary = mean over active agents of |x0_hat[t=0] - start| + |x0_hat[t=H-1] - horizon_goal|.
 inline double boundary_loss(const Mat& x0_hat, const Mat& start, const Mat& horizon_goal, const std::vector<float>& mask,
@@ -363,7 +418,7 @@ inline double boundary_loss(const Mat& x0_hat, const Mat& start, const Mat& hori
             const long col = side ? c1 : c0;
             const float dx = x0_hat(0, col) - (side ? horizon_goal(0, a) : start(0, a));
             const float dy = x0_hat(1, col) - (side ? horizon_goal(1, a) : start(1, a));
-            const float len = smooth_norm(dx, dy);
+            const float len = detail::smooth_norm(dx, dy);
             total += w * len;
             const float g = (float)(weight * w / active) / len;
             grad(0, col) += g * dx;
@@ -397,7 +452,7 @@ inline double temporal_loss(const Mat& x0_hat, const std::vector<float>& mask, i
                     dx += st[s] * x0_hat(0, c + t + s);
                     dy += st[s] * x0_hat(1, c + t + s);
                 }
-                const float l = smooth_norm(dx, dy);
+                const float l = detail::smooth_norm(dx, dy);
                 total += w * scale * l;
                 const float g = (float)(weight * w * scale / active) / l;
                 for (int s = 0; s < len; ++s) {
@@ -464,7 +519,7 @@ struct TrainConfig {
     long steps = 20000;           // optimizer steps
     int batch = 64;               // windows (scenes) per step
     float lr = 3e-4f;
-    float clip = 1.0f;            // global gradient-norm clip
+    float grad_clip = 1.0f;       // global gradient-norm clip
     float ema_decay = 0.995f;
     long ema_start = 1000;        // EMA tracks the weights from this step (copied before)
     float curriculum_end = 0.5f;  // fraction of training at which n_curr reaches n_train_max
@@ -481,7 +536,7 @@ struct TrainConfig {
     bool resume = false;
     uint64_t seed = 0;
     int threads = 1;              // data-parallel replicas, each on its share of the batch (results depend on it)
-    bool quiet = false;
+    ProgressFn progress;          // called after every step with the smoothed loss (optional)
     // Called after every optimizer step; returning false stops training there (a time budget,
     // early stopping, or a test's simulated kill). Checkpoints already written stay valid.
     std::function<bool(long step)> keep_going;
@@ -501,6 +556,8 @@ struct TrainBatch {
     std::vector<Map> maps;  // per scene, in world units, mirrored like the scene
 };
 
+namespace detail {
+// The map mirrored in x (fx = -1) and/or y (fy = -1): training augmentation.
 inline Map mirrored(const Map& m, double fx, double fy) {
     Map out = m;
     for (Disc& o : out.discs) o.c = Vec2{o.c.x * fx, o.c.y * fy};
@@ -511,6 +568,7 @@ inline Map mirrored(const Map& m, double fx, double fy) {
     }
     return out;
 }
+}  // namespace detail
 
 // Draws `batch` windows with at most n_curr agents. Agents go to random distinct PE_agent slots.
 inline void make_train_batch(const DemoSet& demos, const std::vector<WindowRef>& windows, const ModelConfig& mc,
@@ -541,7 +599,7 @@ inline void make_train_batch(const DemoSet& demos, const std::vector<WindowRef>&
         const Demonstration& d = demos.episodes[ref.episode];
         const double fx = tc.augment && rng.uniform() < 0.5 ? -1 : 1, fy = tc.augment && rng.uniform() < 0.5 ? -1 : 1;
         auto mir = [&](Vec2 p) { return Vec2{p.x * fx, p.y * fy}; };
-        tb.maps[b] = mirrored(d.map, fx, fy);
+        tb.maps[b] = detail::mirrored(d.map, fx, fy);
         encode_map(tb.scene, b, tb.maps[b], mc);
         std::iota(order.begin(), order.end(), 0);
         for (int i = d.agents - 1; i > 0; --i) std::swap(order[i], order[rng.uniform_int(i + 1)]);
@@ -667,21 +725,225 @@ inline LossTerms diffusion_loss(MadbpModel& model, const NoiseSchedule& schedule
 }
 
 // =============================================================================================
+// Training scaffold: optimizer state, run identity, resumable state files, loss curves
+// =============================================================================================
+// One piece for train, train_mappo and train_madiff. A run writes <out> (the model, by the
+// trainer), <out>.train (what --resume reads: weights, state, Adam, EMA, RNG streams and the
+// run's identity) and <out>.csv (the loss curve), each atomically. A resumed run continues
+// exactly as an uninterrupted one, and refuses a state file written by another run, naming
+// the field that differs.
+
+// Reads a flat tensor of exactly n values into out (used for optimizer state).
+inline void read_flat(const SafeTensors& st, const std::string& name, int n, Vec& out) {
+    const NamedTensor& t = st.at(name);
+    if (t.shape != std::vector<int>{n})
+        throw std::runtime_error(st.source + ": tensor '" + name + "' has shape " + detail::shape_string(t.shape) + " but [" +
+                                 std::to_string(n) + "] is expected");
+    out = Eigen::Map<const Vec>(t.data.data(), n);
+}
+
+// Adam state: tensors optim.adam.m / optim.adam.v (P) and metadata "optim.adam.step".
+// Only the moments and step are saved; hyper-parameters belong to the training config.
+inline void append_adam(const Adam& adam, std::vector<NamedTensor>& tensors, std::map<std::string, std::string>& metadata) {
+    tensors.push_back(make_tensor("optim.adam.m", {(int)adam.m.size()}, adam.m.data()));
+    tensors.push_back(make_tensor("optim.adam.v", {(int)adam.v.size()}, adam.v.data()));
+    metadata["optim.adam.step"] = std::to_string(adam.step);
+}
+inline void read_adam(const SafeTensors& st, int param_count, Adam& adam) {
+    const std::string& s = st.meta("optim.adam.step");
+    if (s.empty() || s.size() > 18 || s.find_first_not_of("0123456789") != std::string::npos)
+        throw std::runtime_error(st.source + ": __metadata__['optim.adam.step'] = '" + s + "' is not a step count");
+    read_flat(st, "optim.adam.m", param_count, adam.m);
+    read_flat(st, "optim.adam.v", param_count, adam.v);
+    adam.step = std::stol(s);
+}
+
+// EMA state: tensor optim.ema.shadow (P) and metadata "optim.ema.decay".
+inline void append_ema(const Ema& ema, std::vector<NamedTensor>& tensors, std::map<std::string, std::string>& metadata) {
+    tensors.push_back(make_tensor("optim.ema.shadow", {(int)ema.shadow.size()}, ema.shadow.data()));
+    char buf[32];
+    std::snprintf(buf, sizeof buf, "%.9g", ema.decay);
+    metadata["optim.ema.decay"] = buf;
+}
+inline void read_ema(const SafeTensors& st, int param_count, Ema& ema) {
+    read_flat(st, "optim.ema.shadow", param_count, ema.shadow);
+    const std::string& s = st.meta("optim.ema.decay");
+    char* endp = nullptr;
+    const float d = std::strtof(s.c_str(), &endp);
+    if (s.empty() || *endp != '\0' || !(d >= 0 && d <= 1))
+        throw std::runtime_error(st.source + ": __metadata__['optim.ema.decay'] = '" + s + "' is not a decay in [0, 1]");
+    ema.decay = d;
+}
+
+// RNG state as metadata "<key>" = four decimal words (float tensors cannot hold u64 exactly).
+inline void append_rng(const Rng& rng, const std::string& key, std::map<std::string, std::string>& metadata) {
+    std::string s;
+    for (int i = 0; i < 4; ++i) s += (i ? " " : "") + std::to_string(rng.s[i]);
+    metadata[key] = s;
+}
+inline void read_rng(const SafeTensors& st, const std::string& key, Rng& rng) {
+    const std::string& s = st.meta(key);
+    uint64_t w[4];
+    const char* p = s.c_str();
+    for (int i = 0; i < 4; ++i) {
+        char* endp = nullptr;
+        errno = 0;
+        if (*p < '0' || *p > '9') endp = const_cast<char*>(p);
+        else w[i] = std::strtoull(p, &endp, 10);
+        if (endp == p || errno == ERANGE || (i < 3 ? *endp != ' ' : *endp != '\0'))
+            throw std::runtime_error(st.source + ": __metadata__['" + key + "'] = '" + s.substr(0, 80) + "' is not four 64-bit words");
+        p = endp + (i < 3 ? 1 : 0);
+    }
+    if ((w[0] | w[1] | w[2] | w[3]) == 0) throw std::runtime_error(st.source + ": __metadata__['" + key + "'] is the all-zero state");
+    for (int i = 0; i < 4; ++i) rng.s[i] = w[i];
+}
+
+// A training curve: named columns, one row per logged step; column 0 is the step (or
+// iteration). Written as <out>.csv; the madbp tool draws it as <out>.svg.
+struct Curve {
+    std::vector<std::string> columns;
+    std::vector<std::vector<double>> rows;
+
+    void add(std::vector<double> row) {
+        MADBP_ASSERT(row.size() == columns.size());
+        rows.push_back(std::move(row));
+    }
+    // Index of a column (std::invalid_argument when there is none).
+    int column(const std::string& name) const {
+        for (size_t i = 0; i < columns.size(); ++i)
+            if (columns[i] == name) return (int)i;
+        throw std::invalid_argument("curve: no column '" + name + "'");
+    }
+    std::string csv() const {
+        std::string out;
+        for (size_t i = 0; i < columns.size(); ++i) out += (i ? "," : "") + columns[i];
+        out += '\n';
+        for (const auto& row : rows) {
+            for (size_t i = 0; i < row.size(); ++i) {
+                char b[32];
+                std::snprintf(b, sizeof b, i == 0 ? "%.0f" : "%.7g", row[i]);
+                out += (i ? "," : "") + std::string(b);
+            }
+            out += '\n';
+        }
+        return out;
+    }
+    // The rows of a CSV with these columns up to step `last` (a resumed run's history); a
+    // missing file gives none; another header or a malformed row is an error naming the file.
+    void read_csv(const std::string& path, long last) {
+        rows.clear();
+        std::ifstream in(path);
+        if (!in) return;
+        std::string line, header = csv();
+        header = header.substr(0, header.find('\n'));
+        if (!std::getline(in, line) || line != header)
+            throw std::runtime_error(path + ": the loss curve's header is not '" + header + "'");
+        for (int lineno = 2; std::getline(in, line); ++lineno) {
+            std::vector<double> row;
+            std::stringstream ss(line);
+            for (std::string cell; std::getline(ss, cell, ',');) {
+                char* end = nullptr;
+                row.push_back(std::strtod(cell.c_str(), &end));
+                if (cell.empty() || *end != '\0') row.clear();
+                if (row.empty()) break;
+            }
+            if (row.size() != columns.size()) throw std::runtime_error(path + ":" + std::to_string(lineno) + ": malformed curve row");
+            if (row[0] <= (double)last) rows.push_back(std::move(row));
+        }
+    }
+};
+
+// FNV-1a 64 of bytes, as 16 hex digits: the content hash in a run's identity.
+inline std::string content_hash(const std::vector<uint8_t>& bytes) {
+    uint64_t h = 1469598103934665603ull;
+    for (uint8_t b : bytes) h = (h ^ b) * 1099511628211ull;
+    char out[17];
+    std::snprintf(out, sizeof out, "%016llx", (unsigned long long)h);
+    return out;
+}
+
+// The resumable state of one run. The trainer owns the model, optimizer and RNGs; TrainState
+// knows where they are and what makes the run this run:
+//   TrainState state(out, *model.params, adam, &ema, {{"train.rng", &rng}}, identity, curve columns);
+//   if (resume) step = state.resume();           // checks identity, restores everything
+//   ... state.curve.add({step, loss, ...}); state.save(step, extra metadata);
+class TrainState {
+public:
+    Curve curve;
+
+    TrainState(std::string out, ParamStore& params, Adam& adam, Ema* ema, std::vector<std::pair<std::string, Rng*>> rngs,
+               std::map<std::string, std::string> identity, std::vector<std::string> curve_columns)
+        : out_(std::move(out)), params_(params), adam_(adam), ema_(ema), rngs_(std::move(rngs)), identity_(std::move(identity)) {
+        curve.columns = std::move(curve_columns);
+    }
+    std::string state_path() const { return out_ + ".train"; }
+    std::string csv_path() const { return out_ + ".csv"; }
+
+    // Restores the run from <out>.train and returns its step: every identity field must equal
+    // this run's (the error names the first that differs), then the weights, state, Adam, EMA,
+    // RNG streams and the curve rows up to that step come back.
+    long resume() {
+        const SafeTensors st = load_safetensors(state_path());
+        for (auto& kv : identity_) {
+            auto it = st.metadata.find(kv.first);
+            if (it == st.metadata.end() || it->second != kv.second)
+                throw std::runtime_error(state_path() + ": was written by a run with another " + kv.first + " (" +
+                                         (it == st.metadata.end() ? std::string("none") : it->second.substr(0, 80)) +
+                                         ", this run: " + kv.second.substr(0, 80) + ")");
+        }
+        read_param_tensors(st, params_);
+        read_adam(st, params_.size(), adam_);
+        if (ema_) read_ema(st, params_.size(), *ema_);
+        for (auto& r : rngs_) read_rng(st, r.first, *r.second);
+        const std::string& s = st.meta("train.step");
+        if (s.empty() || s.size() > 18 || s.find_first_not_of("0123456789") != std::string::npos)
+            throw std::runtime_error(state_path() + ": __metadata__['train.step'] = '" + s + "' is not a step count");
+        const long step = std::stol(s);
+        curve.read_csv(csv_path(), step);
+        return step;
+    }
+    // Writes <out>.train (identity, step and `metadata` in its header) and <out>.csv.
+    void save(long step, std::map<std::string, std::string> metadata) const {
+        std::vector<NamedTensor> tensors = param_tensors(params_);
+        for (auto& kv : identity_) metadata[kv.first] = kv.second;
+        metadata["train.step"] = std::to_string(step);
+        append_adam(adam_, tensors, metadata);
+        if (ema_) append_ema(*ema_, tensors, metadata);
+        for (auto& r : rngs_) append_rng(*r.second, r.first, metadata);
+        save_safetensors(state_path(), tensors, metadata);
+        const std::string text = curve.csv();
+        write_file_atomic(csv_path(), std::vector<uint8_t>(text.begin(), text.end()));
+    }
+    // Runs write_model with the EMA weights in the store when `use_ema` (the model file a
+    // planner loads), then puts the raw training weights back.
+    template <class F>
+    void with_model_weights(bool use_ema, const F& write_model) {
+        if (!use_ema || !ema_) { write_model(); return; }
+        raw_ = params_.value;
+        ema_->copy_to(params_);
+        write_model();
+        params_.value = raw_;
+    }
+
+private:
+    std::string out_;
+    ParamStore& params_;
+    Adam& adam_;
+    Ema* ema_;
+    std::vector<std::pair<std::string, Rng*>> rngs_;
+    std::map<std::string, std::string> identity_;
+    Vec raw_;
+};
+
+// =============================================================================================
 // Training loop (paper Alg. 1)
 // =============================================================================================
-
-// One row of the loss curve (written to <out>.csv).
-struct CurveRow {
-    long step = 0;
-    int n_curr = 0;
-    LossTerms train;     // smoothed over recent steps
-    double val_total = 0;
-};
 
 struct TrainReport {
     long steps = 0;
     double seconds = 0;
     LossTerms last_train, last_val;
+    Curve curve;  // step, n_curr, smoothed train losses, validation total (as <out>.csv)
 };
 
 // The curriculum (SPEC 7): n_curr rises linearly from 1 to n_train_max, reaching it at
@@ -691,30 +953,22 @@ inline int curriculum_agents(long step, const TrainConfig& tc) {
     return std::min(tc.n_train_max, 1 + (int)(step / ramp * tc.n_train_max));
 }
 
-// Writes an SVG line plot of the loss curves (train total and validation total).
-inline void write_loss_svg(const std::string& path, const std::vector<CurveRow>& curve) {
-    if (curve.empty()) return;
-    std::vector<std::array<double, 3>> rows;
-    for (const CurveRow& c : curve) rows.push_back({(double)c.step, c.train.total, c.val_total});
-    double x_max = rows.back()[0], y_max = 0, y_min = 1e300;
-    for (auto& r : rows) for (int k = 1; k < 3; ++k) if (r[k] > 0) { y_max = std::max(y_max, r[k]); y_min = std::min(y_min, r[k]); }
-    if (!(y_max > 0)) return;
-    const double lo = std::log10(y_min), hi = std::log10(y_max) + 1e-9;
-    auto X = [&](double s) { return 60 + 520 * s / std::max(1.0, x_max); };
-    auto Y = [&](double v) { return 20 + 300 * (hi - std::log10(std::max(v, y_min))) / std::max(1e-9, hi - lo); };
-    std::string svg = "<svg xmlns='http://www.w3.org/2000/svg' width='600' height='360' font-family='sans-serif' font-size='11'>\n"
-                      "<rect width='600' height='360' fill='white'/>\n";
-    const char* colors[2] = {"#1f77b4", "#d62728"};
-    const char* names[2] = {"train loss", "validation loss"};
-    for (int k = 0; k < 2; ++k) {
-        svg += "<polyline fill='none' stroke='" + std::string(colors[k]) + "' points='";
-        for (auto& r : rows) if (r[k + 1] > 0) svg += std::to_string(X(r[0])) + "," + std::to_string(Y(r[k + 1])) + " ";
-        svg += "'/>\n<text x='" + std::to_string(420) + "' y='" + std::to_string(30 + 14 * k) + "' fill='" + colors[k] + "'>" + names[k] + "</text>\n";
-    }
-    char buf[256];
-    std::snprintf(buf, sizeof buf, "<text x='60' y='345'>step 0 .. %.0f (log-scale loss %.3g .. %.3g)</text>\n</svg>\n", x_max, y_min, y_max);
-    svg += buf;
-    write_file_atomic(path, std::vector<uint8_t>(svg.begin(), svg.end()));
+// What makes a training run this run (checked on --resume): the model, the data's content,
+// every hyper-parameter that changes the result, the seed and the replica count.
+inline std::map<std::string, std::string> train_identity(const DemoSet& demos, const ModelConfig& mc, const TrainConfig& tc) {
+    auto f = [](double v) { char b[32]; std::snprintf(b, sizeof b, "%.9g", v); return std::string(b); };
+    std::map<std::string, std::string> id = mc.to_metadata();
+    std::string w;
+    for (float x : tc.loss_weights) w += (w.empty() ? "" : ",") + f(x);
+    id.insert({{"train.data", content_hash(demos_bytes(demos))}, {"train.seed", std::to_string(tc.seed)},
+               {"train.steps", std::to_string(tc.steps)}, {"train.batch", std::to_string(tc.batch)},
+               {"train.threads", std::to_string(std::max(1, std::min(tc.threads, tc.batch)))}, {"train.lr", f(tc.lr)},
+               {"train.grad_clip", f(tc.grad_clip)}, {"train.loss_weights", w}, {"train.jerk_weight", f(tc.jerk_weight)},
+               {"train.n_train_max", std::to_string(tc.n_train_max)}, {"train.curriculum_end", f(tc.curriculum_end)},
+               {"train.ema", f(tc.ema_decay) + " from " + std::to_string(tc.ema_start)}, {"train.stride", std::to_string(tc.stride)},
+               {"train.augment", tc.augment ? "1" : "0"}, {"train.goal_reach", f(tc.goal_reach)},
+               {"train.validation", f(tc.val_fraction) + " x " + std::to_string(tc.val_batches)}});
+    return id;
 }
 
 // Trains `model` on `demos`; writes tc.out (the EMA weights, ready for DiffusionPlanner),
@@ -744,46 +998,26 @@ inline TrainReport train(const DemoSet& demos, MadbpModel& model, const TrainCon
     adam.lr = tc.lr;
     Ema ema;
     ema.decay = tc.ema_decay;
-    // What makes two runs the same run (checked on --resume): seed, length, batch, replicas.
-    const std::map<std::string, std::string> run_identity = {{"train.seed", std::to_string(tc.seed)},
-        {"train.steps", std::to_string(tc.steps)}, {"train.batch", std::to_string(tc.batch)},
-        {"train.threads", std::to_string(std::max(1, std::min(tc.threads, tc.batch)))}};
     // The curriculum starts at the smallest team the data has.
     int smallest_team = 1 << 30;
     for (const WindowRef& w : train_windows) smallest_team = std::min(smallest_team, demos.episodes[w.episode].agents);
     // Data parallelism: replica r trains on its share of the batch with its own random stream;
-    // gradients (and BatchNorm running statistics) are averaged weighted by the shares.
+    // gradients and BatchNorm running statistics are averaged weighted by the shares.
     const int R = std::max(1, std::min(tc.threads, tc.batch));
     std::vector<Rng> rngs;
     for (int r = 0; r < R; ++r) rngs.emplace_back(tc.seed + 0x9E3779B97F4A7C15ull * r);
-    Rng& rng = rngs[0];
+    std::vector<std::pair<std::string, Rng*>> rng_names;
+    for (int r = 0; r < R; ++r) rng_names.push_back({r == 0 ? "train.rng" : "train.rng." + std::to_string(r), &rngs[r]});
+    TrainState state(tc.out, *model.params, adam, &ema, rng_names, train_identity(demos, mc, tc),
+                     {"step", "n_curr", "train_total", "train_noise", "train_boundary", "train_temporal", "train_collision", "val_total"});
     long step = 0;
-    std::vector<CurveRow> curve;
-    const std::string state_path = tc.out + ".train", csv_path = tc.out + ".csv";
+    LossTerms smooth;  // exponentially smoothed training losses (in the state file: the curve continues exactly)
     if (tc.resume) {
-        SafeTensors st = load_safetensors(state_path);
-        ModelConfig saved = ModelConfig::from_metadata(st.metadata, state_path);
-        if (saved.to_metadata() != mc.to_metadata()) throw std::runtime_error(state_path + ": model config differs from this run's");
-        read_param_tensors(st, *model.params);
-        read_adam(st, model.params->size(), adam);
-        read_ema(st, model.params->size(), ema);
-        for (auto& kv : run_identity)  // a resumed run must be the same run
-            if (!st.metadata.count(kv.first) || st.metadata.at(kv.first) != kv.second)
-                throw std::runtime_error(state_path + ": was written by a run with another " + kv.first + " (" +
-                                         (st.metadata.count(kv.first) ? st.metadata.at(kv.first) : std::string("none")) + ", this run: " + kv.second + ")");
-        read_rng(st, "train.rng", rng);
-        for (int r = 1; r < R; ++r)
-            if (st.metadata.count("train.rng." + std::to_string(r))) read_rng(st, "train.rng." + std::to_string(r), rngs[r]);
-        step = adam.step;
-        std::ifstream csv(csv_path);
-        std::string line;
-        std::getline(csv, line);  // header
-        while (std::getline(csv, line)) {
-            CurveRow r;
-            if (std::sscanf(line.c_str(), "%ld,%d,%lf,%lf,%lf,%lf,%lf,%lf", &r.step, &r.n_curr, &r.train.total, &r.train.noise,
-                            &r.train.boundary, &r.train.temporal, &r.train.collision, &r.val_total) == 8 && r.step <= step)
-                curve.push_back(r);
-        }
+        step = state.resume();
+        const SafeTensors st = load_safetensors(state.state_path());
+        if (std::sscanf(st.meta("train.smooth").c_str(), "%lf %lf %lf %lf %lf", &smooth.total, &smooth.noise, &smooth.boundary,
+                        &smooth.temporal, &smooth.collision) != 5)
+            throw std::runtime_error(state.state_path() + ": __metadata__['train.smooth'] is not five numbers");
     }
     if (ema.shadow.size() != model.params->size()) ema.shadow = model.params->value;
 
@@ -792,9 +1026,6 @@ inline TrainReport train(const DemoSet& demos, MadbpModel& model, const TrainCon
     LossWorkspace ws;
     TrainReport rep;
     auto t_start = std::chrono::steady_clock::now();
-    ProgressLine progress("train", tc.steps, tc.quiet);
-    progress.done = step;
-    LossTerms smooth;
     auto validate = [&]() {
         // Fixed seeds: the same validation windows and noise every time.
         Rng vrng(tc.seed + 777);
@@ -810,30 +1041,16 @@ inline TrainReport train(const DemoSet& demos, MadbpModel& model, const TrainCon
         }
         return sum;
     };
-    auto save_state = [&]() {
+    auto save = [&]() {
         // Model file: EMA weights (or raw weights before the EMA starts), eval-ready.
-        Vec raw = model.params->value;
-        if (step >= tc.ema_start) ema.copy_to(*model.params);
-        save_model(tc.out, model, {{"demonstrator", demos.demonstrator}, {"train.step", std::to_string(step)},
-                                   {"train.n_train_max", std::to_string(tc.n_train_max)}});
-        model.params->value = raw;
-        std::vector<NamedTensor> tensors = param_tensors(*model.params);
-        auto md = mc.to_metadata();
-        append_adam(adam, tensors, md);
-        append_ema(ema, tensors, md);
-        append_rng(rng, "train.rng", md);
-        for (auto& kv : run_identity) md[kv.first] = kv.second;
-        for (int r = 1; r < R; ++r) append_rng(rngs[r], "train.rng." + std::to_string(r), md);
-        save_safetensors(state_path, tensors, md);
-        std::string csv = "step,n_curr,train_total,train_noise,train_boundary,train_temporal,train_collision,val_total\n";
-        for (const CurveRow& r : curve) {
-            char buf[256];
-            std::snprintf(buf, sizeof buf, "%ld,%d,%.6g,%.6g,%.6g,%.6g,%.6g,%.6g\n", r.step, r.n_curr, r.train.total, r.train.noise,
-                          r.train.boundary, r.train.temporal, r.train.collision, r.val_total);
-            csv += buf;
-        }
-        write_file_atomic(csv_path, std::vector<uint8_t>(csv.begin(), csv.end()));
-        write_loss_svg(tc.out + ".svg", curve);
+        state.with_model_weights(step >= tc.ema_start, [&] {
+            save_model(tc.out, model, {{"demonstrator", demos.demonstrator}, {"train.step", std::to_string(step)},
+                                       {"train.n_train_max", std::to_string(tc.n_train_max)}});
+        });
+        char sm[160];
+        std::snprintf(sm, sizeof sm, "%.17g %.17g %.17g %.17g %.17g", smooth.total, smooth.noise, smooth.boundary, smooth.temporal,
+                      smooth.collision);
+        state.save(step, {{"train.smooth", sm}});
     };
     std::vector<MadbpModel> clones;
     std::vector<MadbpModel*> replica = {&model};
@@ -883,7 +1100,7 @@ inline TrainReport train(const DemoSet& demos, MadbpModel& model, const TrainCon
             }
         }
         if (!std::isfinite(l.total)) throw std::runtime_error("train: loss became non-finite at step " + std::to_string(step));
-        clip_grad_norm(*model.params, tc.clip);
+        clip_grad_norm(*model.params, tc.grad_clip);
         adam.update(*model.params);
         step++;
         if (step == tc.ema_start) ema.shadow = model.params->value;
@@ -899,16 +1116,20 @@ inline TrainReport train(const DemoSet& demos, MadbpModel& model, const TrainCon
             model.set_training(false);  // validation uses the running BatchNorm statistics
             rep.last_val = validate();
             model.set_training(true);
-            curve.push_back({step, n_curr, smooth, rep.last_val.total});
+            state.curve.add({(double)step, (double)n_curr, smooth.total, smooth.noise, smooth.boundary, smooth.temporal,
+                             smooth.collision, rep.last_val.total});
         }
-        if (step % tc.checkpoint_every == 0 || step == tc.steps) save_state();
-        char extra[96];
-        std::snprintf(extra, sizeof extra, "n_curr %d  loss %.4f", n_curr, smooth.total);
-        progress.tick(1, extra);
+        if (step % tc.checkpoint_every == 0 || step == tc.steps) save();
+        if (tc.progress) {
+            char note[96];
+            std::snprintf(note, sizeof note, "n_curr %d  loss %.4f", n_curr, smooth.total);
+            tc.progress(step, tc.steps, note);
+        }
         if (tc.keep_going && !tc.keep_going(step)) break;
     }
     rep.steps = step;
     rep.seconds = std::chrono::duration<double>(std::chrono::steady_clock::now() - t_start).count();
+    rep.curve = state.curve;
     if (step >= tc.ema_start) ema.copy_to(*model.params);
     model.set_training(false);
     return rep;
@@ -1189,7 +1410,7 @@ struct PpoBatch {
     Vec logp_old, adv, ret;    // (N)
 };
 struct PpoCoefficients {
-    float clip = 0.2f, vf_coef = 0.5f, ent_coef = 1e-3f;
+    float ratio_clip = 0.2f, vf_coef = 0.5f, ent_coef = 1e-3f;
 };
 
 // Forward and backward of the full PPO loss on one minibatch: adds the gradients to
@@ -1205,7 +1426,7 @@ inline PpoTerms ppo_loss(MappoNet& net, const PpoBatch& b, const PpoCoefficients
     const Eigen::Vector2f ls = net.log_std_value();
     ws.logp.resize(N);
     for (long s = 0; s < N; ++s) ws.logp[s] = gaussian_log_prob(&b.act(0, s), &ws.mean(0, s), ls.data());
-    terms.policy = clipped_surrogate(ws.logp, b.logp_old, b.adv, k.clip, ws.dlogp, &terms.clip_fraction);
+    terms.policy = clipped_surrogate(ws.logp, b.logp_old, b.adv, k.ratio_clip, ws.dlogp, &terms.clip_fraction);
     terms.approx_kl = (b.logp_old - ws.logp).mean();
     terms.entropy = gaussian_entropy(ls.data());
     // Chain rule through the log-probability: d/dmu and d/dlog sigma per sample.
@@ -1239,7 +1460,7 @@ inline PpoTerms ppo_loss(MappoNet& net, const PpoBatch& b, const PpoCoefficients
 //   + time per step (a small push toward finishing early)
 // VMAS's collision penalty is -1, but with obstacles that is a whole episode's shaping for one
 // step of contact and the policy grew timid: obstacles n = 2 reached .52 with (-1, bonus 1),
-// .88 with (-0.1, 1) and .94 with (-0.1, 5) (200 iterations, 100 evaluation episodes; README).
+// .88 with (-0.1, 1) and .94 with (-0.1, 5) (200 iterations, 100 evaluation episodes; docs/experiments.md).
 struct MappoRewards {
     float shaping = 1.0f, success_bonus = 5.0f, collision = -0.1f, time = -0.01f;
     float at_goal = 0.0f;  // per step while within the goal tolerance
@@ -1263,7 +1484,7 @@ struct MappoConfig {
     bool resume = false;           // continue from out + ".train"
     long checkpoint_every = 10;    // iterations
     int threads = 1;               // OpenMP threads (worlds, observations, products); results do not depend on it
-    bool quiet = false;            // no progress line
+    ProgressFn progress;           // called after every iteration (optional)
     // Called after every iteration; false stops there, after a checkpoint (time budgets).
     std::function<bool(long iteration)> keep_going;
 
@@ -1273,7 +1494,7 @@ struct MappoConfig {
         if (agents < 1 || agents > 64) throw std::invalid_argument("agents: must be in [1, 64] (got " + std::to_string(agents) + ")");
         if (worlds < 1 || iterations < 1 || epochs < 1 || minibatches < 1 || checkpoint_every < 1)
             throw std::invalid_argument("MappoConfig: worlds, iterations, epochs, minibatches, checkpoint_every must be >= 1");
-        if (!(lr > 0 && gamma > 0 && gamma <= 1 && lambda >= 0 && lambda <= 1 && max_grad_norm > 0 && ppo.clip > 0))
+        if (!(lr > 0 && gamma > 0 && gamma <= 1 && lambda >= 0 && lambda <= 1 && max_grad_norm > 0 && ppo.ratio_clip > 0))
             throw std::invalid_argument("MappoConfig: lr, gamma, lambda, max_grad_norm or clip out of range");
         if (resume && out.empty()) throw std::invalid_argument("resume: needs an output file");
     }
@@ -1282,7 +1503,7 @@ struct MappoConfig {
         auto f = [](double v) { char b[32]; std::snprintf(b, sizeof b, "%.6g", v); return std::string(b); };
         return {{"mappo.map", map}, {"mappo.half_size", f(half_size)}, {"mappo.worlds", std::to_string(worlds)},
                 {"mappo.epochs", std::to_string(epochs)}, {"mappo.minibatches", std::to_string(minibatches)},
-                {"mappo.lr", f(lr)}, {"mappo.gamma", f(gamma)}, {"mappo.lambda", f(lambda)}, {"mappo.clip", f(ppo.clip)},
+                {"mappo.lr", f(lr)}, {"mappo.gamma", f(gamma)}, {"mappo.lambda", f(lambda)}, {"mappo.clip", f(ppo.ratio_clip)},
                 {"mappo.vf_coef", f(ppo.vf_coef)}, {"mappo.ent_coef", f(ppo.ent_coef)},
                 {"mappo.max_grad_norm", f(max_grad_norm)}, {"mappo.seed", std::to_string(seed)},
                 {"mappo.rewards", "shaping " + f(rewards.shaping) + ", success " + f(rewards.success_bonus) +
@@ -1290,19 +1511,13 @@ struct MappoConfig {
     }
 };
 
-// One row of the training curve (out + ".csv"): statistics of each iteration's first episode
-// per world (exactly `worlds` complete, unbiased episodes; later ones are cut by the iteration).
-struct MappoCurveRow {
-    long iteration = 0, env_steps = 0;  // env_steps: world steps so far
-    double seconds = 0;                 // training wall time so far
-    double success = 0, episode_return = 0;  // success rate, mean per-agent undiscounted return
-    PpoTerms loss;                      // mean over the iteration's minibatches
-};
-
+// The training curve (<out>.csv): per iteration, statistics of each world's first episode
+// (exactly `worlds` complete, unbiased episodes; later ones are cut by the iteration): success
+// rate, mean per-agent undiscounted return, and the mean PPO terms over the minibatches.
 struct MappoReport {
     long iterations = 0, env_steps = 0;
     double seconds = 0;
-    std::vector<MappoCurveRow> curve;
+    Curve curve;  // iteration, env_steps, seconds, success, episode_return, policy_loss, value_loss, entropy, approx_kl, clip_fraction
 };
 
 namespace detail {
@@ -1320,65 +1535,6 @@ struct Rollout {
         terminal.assign(S, 0);
     }
 };
-
-inline void write_mappo_curve(const std::string& path, const std::vector<MappoCurveRow>& curve) {
-    std::string csv = "iteration,env_steps,seconds,success,episode_return,policy_loss,value_loss,entropy,approx_kl,clip_fraction\n";
-    for (const MappoCurveRow& r : curve) {
-        char buf[320];
-        std::snprintf(buf, sizeof buf, "%ld,%ld,%.3f,%.4f,%.5g,%.5g,%.5g,%.5g,%.5g,%.4f\n", r.iteration, r.env_steps, r.seconds,
-                      r.success, r.episode_return, r.loss.policy, r.loss.value, r.loss.entropy, r.loss.approx_kl, r.loss.clip_fraction);
-        csv += buf;
-    }
-    write_file_atomic(path, std::vector<uint8_t>(csv.begin(), csv.end()));
-}
-
-// Reads the rows of a curve CSV up to `iteration` (resume); unreadable lines are skipped.
-inline std::vector<MappoCurveRow> read_mappo_curve(const std::string& path, long iteration) {
-    std::vector<MappoCurveRow> curve;
-    std::ifstream in(path);
-    std::string line;
-    std::getline(in, line);  // header
-    while (std::getline(in, line)) {
-        MappoCurveRow r;
-        PpoTerms& l = r.loss;
-        if (std::sscanf(line.c_str(), "%ld,%ld,%lf,%lf,%lf,%lf,%lf,%lf,%lf,%lf", &r.iteration, &r.env_steps, &r.seconds, &r.success,
-                        &r.episode_return, &l.policy, &l.value, &l.entropy, &l.approx_kl, &l.clip_fraction) == 10 &&
-            r.iteration <= iteration)
-            curve.push_back(r);
-    }
-    return curve;
-}
-
-// SVG of the success rate (left axis, 0..1) and the mean episode return (scaled to its own
-// range) against world steps.
-inline void write_mappo_svg(const std::string& path, const std::vector<MappoCurveRow>& curve, const std::string& title) {
-    if (curve.empty()) return;
-    double x_max = std::max<double>(1, curve.back().env_steps), r_min = 1e300, r_max = -1e300;
-    for (auto& r : curve) r_min = std::min(r_min, r.episode_return), r_max = std::max(r_max, r.episode_return);
-    if (!(r_max > r_min)) r_max = r_min + 1;
-    auto X = [&](double s) { return 60 + 520 * s / x_max; };
-    auto Y = [](double u) { return 320 - 290 * u; };  // u in [0, 1]
-    std::string svg = "<svg xmlns='http://www.w3.org/2000/svg' width='600' height='360' font-family='sans-serif' font-size='11'>\n"
-                      "<rect width='600' height='360' fill='white'/>\n<line x1='60' y1='320' x2='580' y2='320' stroke='#888'/>\n"
-                      "<line x1='60' y1='30' x2='60' y2='320' stroke='#888'/>\n";
-    const char* colors[2] = {"#2ca02c", "#1f77b4"};
-    for (int k = 0; k < 2; ++k) {
-        svg += "<polyline fill='none' stroke='" + std::string(colors[k]) + "' points='";
-        for (auto& r : curve) {
-            const double u = k == 0 ? r.success : (r.episode_return - r_min) / (r_max - r_min);
-            svg += std::to_string(X((double)r.env_steps)) + "," + std::to_string(Y(u)) + " ";
-        }
-        svg += "'/>\n";
-    }
-    char buf[512];
-    std::snprintf(buf, sizeof buf,
-                  "<text x='60' y='20'>%s</text>\n<text x='400' y='20' fill='%s'>success rate (0..1)</text>\n"
-                  "<text x='400' y='34' fill='%s'>episode return (%.3g .. %.3g)</text>\n"
-                  "<text x='60' y='345'>world steps 0 .. %.0f</text>\n</svg>\n",
-                  title.c_str(), colors[0], colors[1], r_min, r_max, x_max);
-    svg += buf;
-    write_file_atomic(path, std::vector<uint8_t>(svg.begin(), svg.end()));
-}
 
 }  // namespace detail
 
@@ -1410,6 +1566,7 @@ inline MappoNet mappo_from(const SafeTensors& st) {
     MappoNetConfig c;
     c.agents = meta_int(st, "mappo.agents", 1, 64);
     c.hidden = meta_int(st, "mappo.hidden", 1, 4096);
+    const ParamBudget budget(st.values(), st.source);  // the declared net may need no more values than the file holds
     MappoNet net(c);
     read_param_tensors(st, *net.params);
     for (long k = 0; k < net.params->size(); ++k)
@@ -1443,20 +1600,16 @@ inline MappoReport train_mappo(const MappoConfig& c, MappoNet* result = nullptr)
     MappoReport rep;
     long iteration = 0;
     double seconds_before = 0;
-    const std::string state_path = c.out + ".train";
+    // Identity: every hyper-parameter and the seed (c.metadata()) and the network's shape; a
+    // resumed run may ask for more iterations.
+    std::map<std::string, std::string> identity = c.metadata();
+    for (auto& kv : net.metadata()) identity[kv.first] = kv.second;
+    TrainState state(c.out, *net.params, adam, nullptr, {{"mappo.rng", &rng}}, identity,
+                     {"iteration", "env_steps", "seconds", "success", "episode_return", "policy_loss", "value_loss", "entropy",
+                      "approx_kl", "clip_fraction"});
     if (c.resume) {
-        SafeTensors st = load_safetensors(state_path);
-        MappoNet saved = detail::mappo_from(st);
-        if (saved.config.agents != c.agents || saved.config.hidden != c.hidden || st.meta("mappo.map") != c.map)
-            throw std::runtime_error(state_path + ": trained for map '" + st.meta("mappo.map") + "' with " +
-                                     std::to_string(saved.config.agents) + " agents and hidden " + std::to_string(saved.config.hidden) +
-                                     ", not this run's");
-        net.params->value = saved.params->value;
-        read_adam(st, net.params->size(), adam);
-        read_rng(st, "mappo.rng", rng);
-        iteration = detail::meta_int(st, "mappo.iteration", 0, 1 << 30);
-        seconds_before = std::atof(st.meta("mappo.seconds").c_str());
-        rep.curve = detail::read_mappo_curve(c.out + ".csv", iteration);
+        iteration = state.resume();
+        seconds_before = std::atof(load_safetensors(state.state_path()).meta("mappo.seconds").c_str());
     }
     const int n = c.agents, W = c.worlds, O = kMappoObs;
     WorldConfig wc;
@@ -1472,30 +1625,22 @@ inline MappoReport train_mappo(const MappoConfig& c, MappoNet* result = nullptr)
     PpoBatch mb;
     const auto t_start = std::chrono::steady_clock::now();
     auto elapsed = [&] { return seconds_before + std::chrono::duration<double>(std::chrono::steady_clock::now() - t_start).count(); };
-    auto save_state = [&] {
+    auto save = [&] {
         if (c.out.empty()) return;
-        auto md = c.metadata();
+        std::map<std::string, std::string> md = c.metadata();
         md["mappo.iteration"] = std::to_string(iteration);
         md["mappo.env_steps"] = std::to_string(iteration * (long)T * W);
         char secs[32];
         std::snprintf(secs, sizeof secs, "%.3f", elapsed());
         md["mappo.seconds"] = secs;
         save_mappo(c.out, net, md);
-        for (auto& kv : net.metadata()) md[kv.first] = kv.second;
-        std::vector<NamedTensor> tensors = param_tensors(*net.params);
-        append_adam(adam, tensors, md);
-        append_rng(rng, "mappo.rng", md);
-        save_safetensors(state_path, tensors, md);
-        detail::write_mappo_curve(c.out + ".csv", rep.curve);
-        detail::write_mappo_svg(c.out + ".svg", rep.curve, "MAPPO " + c.map + " n=" + std::to_string(n));
+        state.save(iteration, md);
     };
     auto fresh_world = [&](uint64_t seed) { return make_random_world(c.map, n, seed, c.half_size, wc); };
     auto observe_world = [&](int w) {
         mappo_observe_all(batch.worlds[w], step_obs, (long)w * n);
         mappo_critic_input(step_obs, (long)w * n, n, step_critic, (long)w * n);
     };
-    ProgressLine progress("mappo " + c.map + " n=" + std::to_string(n), c.iterations, c.quiet);
-    progress.done = iteration;
     while (iteration < c.iterations) {
         // ---- Rollout: T steps on W worlds.
         batch.worlds.clear();
@@ -1587,22 +1732,22 @@ inline MappoReport train_mappo(const MappoConfig& c, MappoNet* result = nullptr)
             }
         }
         ++iteration;
-        MappoCurveRow row;
-        row.iteration = iteration;
-        row.env_steps = iteration * (long)T * W;
-        row.seconds = elapsed();
-        for (int w = 0; w < W; ++w) row.success += first_success[w], row.episode_return += first_return[w];
-        row.success /= W, row.episode_return /= W;
+        double success = 0, episode_return = 0;
+        for (int w = 0; w < W; ++w) success += first_success[w], episode_return += first_return[w];
+        success /= W, episode_return /= W;
         const double u = std::max(1, updates);
-        row.loss = {sum.policy / u, sum.value / u, sum.entropy / u, sum.approx_kl / u, sum.clip_fraction / u};
-        rep.curve.push_back(row);
+        state.curve.add({(double)iteration, (double)(iteration * (long)T * W), elapsed(), success, episode_return, sum.policy / u,
+                         sum.value / u, sum.entropy / u, sum.approx_kl / u, sum.clip_fraction / u});
         const bool stop = c.keep_going && !c.keep_going(iteration);
-        if (iteration % c.checkpoint_every == 0 || iteration == c.iterations || stop) save_state();
-        char extra[96];
-        std::snprintf(extra, sizeof extra, "success %.2f  return %.3f", row.success, row.episode_return);
-        progress.tick(1, extra);
+        if (iteration % c.checkpoint_every == 0 || iteration == c.iterations || stop) save();
+        if (c.progress) {
+            char note[96];
+            std::snprintf(note, sizeof note, "success %.2f  return %.3f", success, episode_return);
+            c.progress(iteration, c.iterations, note);
+        }
         if (stop) break;
     }
+    rep.curve = state.curve;
     rep.iterations = iteration;
     rep.env_steps = iteration * (long)T * W;
     rep.seconds = elapsed();
@@ -1616,7 +1761,7 @@ inline MappoReport train_mappo(const MappoConfig& c, MappoNet* result = nullptr)
 
 // Drives a team with the actor's mean action (deterministic, no safety filter: MAPPO runs raw,
 // as in the paper), clipped to the action box. The team must have exactly the policy's n
-// agents (std::invalid_argument otherwise): MAPPO is built per team size. plan_ms() is the
+// agents (std::invalid_argument otherwise): MAPPO is built per team size. decision_ms() is the
 // mean wall time of one act() call (the per-step decision time of Fig. 3b).
 class MappoPolicy : public Policy {
 public:
@@ -1636,7 +1781,7 @@ public:
         ++calls_;
         return u;
     }
-    double plan_ms() const override { return calls_ ? total_ms_ / calls_ : 0; }
+    double decision_ms() const override { return calls_ ? total_ms_ / calls_ : 0; }
     int agents() const { return net_.config.agents; }
 
 private:
@@ -1707,7 +1852,7 @@ inline DemonstratorFactory mappo_demonstrator(const std::string& path) {
 // observation feature is mapped to [-1, 1] by its minimum and maximum over the training data
 // (stored in the model as the non-trainable tensors norm.lo / norm.hi), and the network
 // predicts the clean window x0 (Diffuser's maze setting; eps prediction left x0_hat far off at
-// high noise here, measured in the README). Guidance is applied to the noise implied by each
+// high noise here, measured in docs/experiments.md). Guidance is applied to the noise implied by each
 // branch's x0, eps = (x_k - sqrt(ab) x0) / sqrt(1 - ab), which is affine in x0, so it equals
 // x0_u + w (x0_c - x0_u).
 //
@@ -1742,7 +1887,7 @@ struct MadiffConfig {
     int sample_steps = 10;               // S (DDIM, eta = 0), default of the policy
     float guidance = 1.2f;               // w of classifier-free guidance
     float condition_dropout = 0.25f;     // training: probability a window's return is dropped
-    float clip = 1.0f;                   // sampling: x0_hat clipped to [-clip, clip] (normalised observations)
+    float x0_clip = 1.0f;                // sampling: x0_hat clipped to [-x0_clip, x0_clip] (normalised observations)
     // Data-derived (set by train_madiff): raw return range and the normalised sampling target.
     float return_min = 0, return_max = 1, return_target = 0.9f;
 
@@ -1763,7 +1908,7 @@ struct MadiffConfig {
         if (sample_steps < 1 || sample_steps > diffusion_steps) bad("sample_steps", "must be in [1, diffusion_steps]");
         if (!(guidance >= 0 && guidance <= 100)) bad("guidance", "must be in [0, 100]");
         if (!(condition_dropout >= 0 && condition_dropout <= 1)) bad("condition_dropout", "must be in [0, 1]");
-        if (!(clip > 0 && clip < 1e6)) bad("clip", "must be positive");
+        if (!(x0_clip > 0 && x0_clip < 1e6)) bad("x0_clip", "must be positive");
         if (!std::isfinite(return_min) || !std::isfinite(return_max) || !(return_max > return_min))
             bad("return_min/return_max", "need finite values with max > min");
         if (!(return_target >= -10 && return_target <= 10)) bad("return_target", "must be in [-10, 10]");
@@ -1777,7 +1922,7 @@ struct MadiffConfig {
                 {"madiff.kernel", std::to_string(kernel)}, {"madiff.heads", std::to_string(heads)},
                 {"madiff.inv_hidden", std::to_string(inv_hidden)}, {"madiff.diffusion_steps", std::to_string(diffusion_steps)},
                 {"madiff.sample_steps", std::to_string(sample_steps)}, {"madiff.guidance", f(guidance)},
-                {"madiff.condition_dropout", f(condition_dropout)}, {"madiff.clip", f(clip)},
+                {"madiff.condition_dropout", f(condition_dropout)}, {"madiff.clip", f(x0_clip)},
                 {"madiff.return_min", f(return_min)}, {"madiff.return_max", f(return_max)},
                 {"madiff.return_target", f(return_target)}, {"madiff.obs", kMappoObsLayout},
                 {"madiff.prediction", "x0"}, {"madiff.normalizer", "limits"}};
@@ -1824,7 +1969,7 @@ struct MadiffConfig {
         }
         c.guidance = real("madiff.guidance");
         c.condition_dropout = real("madiff.condition_dropout");
-        c.clip = real("madiff.clip");
+        c.x0_clip = real("madiff.clip");
         c.return_min = real("madiff.return_min");
         c.return_max = real("madiff.return_max");
         c.return_target = real("madiff.return_target");
@@ -2001,6 +2146,7 @@ inline void save_madiff(const std::string& path, const MadiffModel& m, std::map<
 }
 namespace detail {
 inline MadiffModel madiff_from(const SafeTensors& st) {
+    const ParamBudget budget(st.values(), st.source);  // the declared config may need no more values than the file holds
     MadiffModel m(MadiffConfig::from_metadata(st));
     read_param_tensors(st, *m.params);
     if (!m.params->value.allFinite() || !m.params->state.allFinite()) throw std::runtime_error(st.source + ": a parameter is not finite");
@@ -2182,7 +2328,7 @@ struct MadiffTrainConfig {
     long steps = 3000;             // optimizer steps
     int batch = 32;                // windows per step (each with n agents)
     float lr = 3e-4f;
-    float clip = 1.0f;             // global gradient-norm clip
+    float grad_clip = 1.0f;        // global gradient-norm clip
     float ema_decay = 0.995f;
     long ema_start = 500;          // the EMA tracks the weights from this step (the file holds raw weights before)
     float return_quantile = 1.0f;  // sampling target: this quantile of the normalised window returns (1: the best window)
@@ -2192,30 +2338,25 @@ struct MadiffTrainConfig {
     bool resume = false;
     uint64_t seed = 0;
     int threads = 1;               // OpenMP threads of the layers; the result does not depend on it
-    bool quiet = false;
+    ProgressFn progress;           // called after every step with the smoothed loss (optional)
     std::function<bool(long step)> keep_going;  // false stops after that step (a checkpoint is written)
 
     void validate() const {
         if (steps < 1 || batch < 1 || log_every < 1 || checkpoint_every < 1 || ema_start < 0)
             throw std::invalid_argument("madiff: steps, batch, log_every and checkpoint_every must be >= 1, ema_start >= 0");
-        if (!(lr > 0 && lr < 1) || !(clip > 0)) throw std::invalid_argument("madiff: lr must be in (0, 1) and clip > 0");
+        if (!(lr > 0 && lr < 1) || !(grad_clip > 0)) throw std::invalid_argument("madiff: lr must be in (0, 1) and grad_clip > 0");
         if (!(ema_decay >= 0 && ema_decay < 1)) throw std::invalid_argument("madiff: ema_decay must be in [0, 1)");
         if (!(return_quantile >= 0 && return_quantile <= 1)) throw std::invalid_argument("madiff: return_quantile must be in [0, 1]");
         if (resume && out.empty()) throw std::invalid_argument("resume: needs an output file");
     }
 };
 
-struct MadiffCurveRow {
-    long step = 0;
-    double seconds = 0;
-    MadiffLoss loss;  // smoothed over recent steps
-};
 struct MadiffReport {
     long steps = 0;
     double seconds = 0;
     int episodes = 0;
     long windows = 0;
-    std::vector<MadiffCurveRow> curve;
+    Curve curve;  // step, seconds, smoothed losses (as <out>.csv)
 };
 
 // Trains a MADiff model for `model_config.map` and `.agents` on the matching episodes of
@@ -2254,73 +2395,46 @@ inline MadiffReport train_madiff(const DemoSet& demos, MadiffConfig mc, const Ma
     MadiffReport rep;
     rep.episodes = (int)data.obs.size();
     rep.windows = (long)data.windows.size();
-    const std::string state_path = tc.out + ".train", csv_path = tc.out + ".csv";
-    const std::map<std::string, std::string> run_identity = {{"madiff.train.seed", std::to_string(tc.seed)},
-        {"madiff.train.steps", std::to_string(tc.steps)}, {"madiff.train.batch", std::to_string(tc.batch)}};
+    auto f = [](double v) { char b[32]; std::snprintf(b, sizeof b, "%.9g", v); return std::string(b); };
+    std::map<std::string, std::string> identity = mc.to_metadata();  // includes the data's return range
+    identity.insert({{"madiff.train.data", content_hash(demos_bytes(demos))}, {"madiff.train.seed", std::to_string(tc.seed)},
+                     {"madiff.train.steps", std::to_string(tc.steps)}, {"madiff.train.batch", std::to_string(tc.batch)},
+                     {"madiff.train.lr", f(tc.lr)}, {"madiff.train.grad_clip", f(tc.grad_clip)},
+                     {"madiff.train.ema", f(tc.ema_decay) + " from " + std::to_string(tc.ema_start)}});
+    TrainState state(tc.out, *model.params, adam, &ema, {{"madiff.rng", &rng}}, identity,
+                     {"step", "seconds", "loss", "diffusion", "inverse"});
+    MadiffLoss smooth;  // exponentially smoothed (in the state file: the curve continues exactly)
     if (tc.resume) {
-        SafeTensors st = load_safetensors(state_path);
-        MadiffConfig saved = MadiffConfig::from_metadata(st);
-        if (saved.to_metadata() != mc.to_metadata()) throw std::runtime_error(state_path + ": model config or data differ from this run's");
-        for (auto& kv : run_identity)
-            if (!st.metadata.count(kv.first) || st.metadata.at(kv.first) != kv.second)
-                throw std::runtime_error(state_path + ": was written by a run with another " + kv.first);
-        read_param_tensors(st, *model.params);
-        read_adam(st, model.params->size(), adam);
-        read_ema(st, model.params->size(), ema);
-        read_rng(st, "madiff.rng", rng);
-        step = adam.step;
+        step = state.resume();
+        const SafeTensors st = load_safetensors(state.state_path());
         seconds_before = std::atof(st.meta("madiff.seconds").c_str());
-        std::ifstream csv(csv_path);
-        std::string line;
-        std::getline(csv, line);
-        while (std::getline(csv, line)) {
-            MadiffCurveRow r;
-            if (std::sscanf(line.c_str(), "%ld,%lf,%lf,%lf,%lf", &r.step, &r.seconds, &r.loss.total, &r.loss.diffusion,
-                            &r.loss.inverse) == 5 && r.step <= step)
-                rep.curve.push_back(r);
-        }
+        if (std::sscanf(st.meta("madiff.smooth").c_str(), "%lf %lf %lf", &smooth.total, &smooth.diffusion, &smooth.inverse) != 3)
+            throw std::runtime_error(state.state_path() + ": __metadata__['madiff.smooth'] is not three numbers");
     }
     if (ema.shadow.size() != model.params->size()) ema.shadow = model.params->value;
     const auto t_start = std::chrono::steady_clock::now();
     auto elapsed = [&] { return seconds_before + std::chrono::duration<double>(std::chrono::steady_clock::now() - t_start).count(); };
-    auto save_state = [&] {
+    auto save = [&] {
         if (tc.out.empty()) return;
-        char secs[32];
+        char secs[32], sm[96];
         std::snprintf(secs, sizeof secs, "%.3f", elapsed());
+        std::snprintf(sm, sizeof sm, "%.17g %.17g %.17g", smooth.total, smooth.diffusion, smooth.inverse);
         const std::map<std::string, std::string> info = {{"demonstrator", demos.demonstrator}, {"train.step", std::to_string(step)},
             {"madiff.seconds", secs}, {"madiff.episodes", std::to_string(rep.episodes)}, {"madiff.windows", std::to_string(rep.windows)}};
-        Vec raw = model.params->value;
-        if (step >= tc.ema_start) ema.copy_to(*model.params);
-        save_madiff(tc.out, model, info);
-        model.params->value = raw;
-        std::vector<NamedTensor> tensors = param_tensors(*model.params);
-        auto md = mc.to_metadata();
-        for (auto& kv : info) md[kv.first] = kv.second;
-        for (auto& kv : run_identity) md[kv.first] = kv.second;
-        append_adam(adam, tensors, md);
-        append_ema(ema, tensors, md);
-        append_rng(rng, "madiff.rng", md);
-        save_safetensors(state_path, tensors, md);
-        std::string csv = "step,seconds,loss,diffusion,inverse\n";
-        for (const MadiffCurveRow& r : rep.curve) {
-            char buf[160];
-            std::snprintf(buf, sizeof buf, "%ld,%.3f,%.6g,%.6g,%.6g\n", r.step, r.seconds, r.loss.total, r.loss.diffusion, r.loss.inverse);
-            csv += buf;
-        }
-        write_file_atomic(csv_path, std::vector<uint8_t>(csv.begin(), csv.end()));
+        state.with_model_weights(step >= tc.ema_start, [&] { save_madiff(tc.out, model, info); });
+        auto md = info;
+        md["madiff.smooth"] = sm;
+        state.save(step, md);
     };
     model.set_training(true);
     MadiffBatch mb;
     MadiffWorkspace ws;
-    MadiffLoss smooth;
-    ProgressLine progress("madiff " + mc.map + " n=" + std::to_string(mc.agents), tc.steps, tc.quiet);
-    progress.done = step;
     while (step < tc.steps) {
         make_madiff_batch(data, model.config, tc.batch, rng, mb);
         model.params->zero_grad();
         const MadiffLoss l = madiff_loss(model, schedule, mb, rng, true, ws);
         if (!std::isfinite(l.total)) throw std::runtime_error("madiff: loss became non-finite at step " + std::to_string(step));
-        clip_grad_norm(*model.params, tc.clip);
+        clip_grad_norm(*model.params, tc.grad_clip);
         adam.update(*model.params);
         ++step;
         if (step == tc.ema_start) ema.shadow = model.params->value;
@@ -2329,14 +2443,18 @@ inline MadiffReport train_madiff(const DemoSet& demos, MadiffConfig mc, const Ma
         smooth.total = keep * smooth.total + (1 - keep) * l.total;
         smooth.diffusion = keep * smooth.diffusion + (1 - keep) * l.diffusion;
         smooth.inverse = keep * smooth.inverse + (1 - keep) * l.inverse;
-        if (step % tc.log_every == 0 || step == tc.steps) rep.curve.push_back({step, elapsed(), smooth});
+        if (step % tc.log_every == 0 || step == tc.steps)
+            state.curve.add({(double)step, elapsed(), smooth.total, smooth.diffusion, smooth.inverse});
         const bool stop = tc.keep_going && !tc.keep_going(step);
-        if (step % tc.checkpoint_every == 0 || step == tc.steps || stop) save_state();
-        char extra[96];
-        std::snprintf(extra, sizeof extra, "loss %.4f (diffusion %.4f, inverse %.4f)", smooth.total, smooth.diffusion, smooth.inverse);
-        progress.tick(1, extra);
+        if (step % tc.checkpoint_every == 0 || step == tc.steps || stop) save();
+        if (tc.progress) {
+            char note[96];
+            std::snprintf(note, sizeof note, "loss %.4f (diffusion %.4f, inverse %.4f)", smooth.total, smooth.diffusion, smooth.inverse);
+            tc.progress(step, tc.steps, note);
+        }
         if (stop) break;
     }
+    rep.curve = state.curve;
     rep.steps = step;
     rep.seconds = elapsed();
     if (step >= tc.ema_start) ema.copy_to(*model.params);
@@ -2354,7 +2472,7 @@ inline MadiffReport train_madiff(const DemoSet& demos, MadiffConfig mc, const Ma
 // target; then a_i = inverse dynamics (o_0, o_1) of agent i, clamped to the action box. Raw
 // actions, no safety filter. The team must have exactly the model's n agents
 // (std::invalid_argument otherwise). Seeded: the same seed and world give the same actions.
-// plan_ms() is the mean wall time of one act().
+// decision_ms() is the mean wall time of one act().
 class MadiffPolicy : public Policy {
 public:
     int sample_steps;       // S, in [1, K]
@@ -2406,7 +2524,7 @@ public:
             eps_u_ = (x_ - sa * out_.rightCols((long)H * n)) / s1a;
             classifier_free_guidance(eps_c_, eps_u_, guidance, eps_);
             for (long j = 0; j < x_.size(); ++j) {  // DDIM (eta = 0) with x0_hat clipped, as sample_windows
-                const float x0 = std::clamp(predict_x0(x_.data()[j], eps_.data()[j], ab), -c.clip, c.clip);
+                const float x0 = std::clamp(predict_x0(x_.data()[j], eps_.data()[j], ab), -c.x0_clip, c.x0_clip);
                 const float e = (x_.data()[j] - sa * x0) / s1a;
                 x_.data()[j] = sap * x0 + s1ap * e;
             }
@@ -2421,7 +2539,7 @@ public:
         ++calls_;
         return u;
     }
-    double plan_ms() const override { return calls_ ? total_ms_ / calls_ : 0; }
+    double decision_ms() const override { return calls_ ? total_ms_ / calls_ : 0; }
     // The window sampled by the last act(): (O, H*n), column i*H + t, normalised observations.
     const Mat& last_window() const { return x_; }
 

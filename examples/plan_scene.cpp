@@ -19,7 +19,7 @@ int main(int argc, char** argv) {
         }
         const madbp::Metrics& m = world.metrics();
         std::printf("%s: %d robots, %s after %d steps, %ld collisions, %.2f ms per plan\n", path, world.size(),
-                    m.success ? "all at their goals" : "not all at their goals", m.steps, m.collisions(), expert.plan_ms());
+                    m.success ? "all at their goals" : "not all at their goals", m.steps, m.collisions(), expert.decision_ms());
         madbp::SvgOptions opt;
         opt.title = path;
         madbp::write_text_file(out, madbp::render_svg(log, opt));

@@ -1,7 +1,7 @@
 // Tests of safetensors checkpoints (madbp.hpp, SPEC section 11): bit-exact round trips, the
 // byte layout Python's safetensors expects, atomic writes, and a clear std::runtime_error for
 // every kind of bad file (truncated, inconsistent offsets or shapes, NaN payloads, random bytes).
-#include "madbp.hpp"
+#include "madbp_train.hpp"  // optimizer-state checkpoints live with training
 
 #include <doctest/doctest.h>
 

@@ -306,7 +306,6 @@ TEST_CASE("evaluate: episode i uses seed S+i; success, its standard error, steps
     c.agents = 3;
     c.episodes = 4;
     c.seed = 10;
-    c.quiet = true;
     int made = 0;
     std::vector<uint64_t> seeds;
     EvalResult r = evaluate(c, [&](const World&, uint64_t seed) {

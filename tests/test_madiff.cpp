@@ -90,7 +90,6 @@ const DemoSet& tiny_demos() {
         c.maps = {"empty"};
         c.n_train_max = 2;
         c.episodes = 8;
-        c.quiet = true;
         return collect_demonstrations(c, expert_demonstrator(), "expert");
     }();
     return set;
@@ -104,7 +103,6 @@ MadiffTrainConfig tiny_train(const std::string& out, long steps) {
     tc.checkpoint_every = 20;
     tc.ema_start = 10;
     tc.out = out;
-    tc.quiet = true;
     return tc;
 }
 
@@ -310,8 +308,9 @@ TEST_CASE("madiff: training is deterministic, resumable, and lowers the loss") {
     const MadiffReport ra = train_madiff(tiny_demos(), tiny_config(), tiny_train(out, 60), &a);
     CHECK(ra.steps == 60);
     CHECK(ra.episodes == 8);
-    REQUIRE(ra.curve.size() == 6);
-    CHECK(ra.curve.back().loss.total < ra.curve.front().loss.total);
+    REQUIRE(ra.curve.rows.size() == 6);
+    const int loss = ra.curve.column("loss");
+    CHECK(ra.curve.rows.back()[loss] < ra.curve.rows.front()[loss]);
     // The data set the normalisation and the return range.
     CHECK(a.config.return_max > a.config.return_min);
     CHECK(a.config.return_target >= 0.0f);
@@ -404,7 +403,7 @@ TEST_CASE("madiff: the policy gives finite, in-range, seeded actions and refuses
         CHECK(policy.last_window().cols() == 2 * m.config.horizon);
         w.step(u);
     }
-    CHECK(policy.plan_ms() > 0);
+    CHECK(policy.decision_ms() > 0);
     // Seeded: a fresh policy with the same seed repeats the first action; another seed differs.
     World w0 = make_random_world("empty", 2, 3);
     MadiffPolicy again(m.clone(), 1), other(m.clone(), 2), first(m.clone(), 1);

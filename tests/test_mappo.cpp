@@ -26,7 +26,6 @@ MappoConfig tiny_config(const std::string& map, int agents, long iterations) {
     c.iterations = iterations;
     c.worlds = 4;
     c.hidden = 16;
-    c.quiet = true;
     return c;
 }
 
@@ -36,7 +35,6 @@ double mean_success(const MappoNet& net, const std::string& map, int agents, int
     ec.agents = agents;
     ec.episodes = episodes;
     ec.seed = 1000;
-    ec.quiet = true;
     return evaluate(ec, [&](const World&, uint64_t) { return std::unique_ptr<Policy>(new MappoPolicy(net.clone())); }).success;
 }
 
@@ -201,7 +199,6 @@ TEST_CASE("mappo: a few seconds of one-agent training on the empty map learn to 
     c.map = "empty";
     c.agents = 1;
     c.iterations = 30;  // 96 000 world steps, about 2 s
-    c.quiet = true;
     MappoNetConfig nc;
     nc.agents = 1;
     nc.hidden = c.hidden;
@@ -212,7 +209,8 @@ TEST_CASE("mappo: a few seconds of one-agent training on the empty map learn to 
     MESSAGE("one-agent success ", before, " -> ", after, " (", rep.seconds, " s)");
     CHECK(before <= 0.1);
     CHECK(after >= 0.8);  // the stated margin: from <= .1 to >= .8
-    CHECK(rep.curve.back().episode_return > rep.curve.front().episode_return + 1.0);
+    const int ret = rep.curve.column("episode_return");
+    CHECK(rep.curve.rows.back()[ret] > rep.curve.rows.front()[ret] + 1.0);
 }
 
 TEST_CASE("mappo: checkpoints round-trip; resume is exact; runs are deterministic") {
@@ -253,7 +251,7 @@ TEST_CASE("mappo: checkpoints round-trip; resume is exact; runs are deterministi
     MappoNet resumed(MappoNetConfig{});
     MappoReport rr = train_mappo(k, &resumed);
     CHECK(rr.iterations == 4);
-    CHECK(rr.curve.size() == 4);
+    CHECK(rr.curve.rows.size() == 4);
     CHECK(resumed.params->value == full.params->value);
     // Thread count does not change the result.
     MappoConfig two = c;
@@ -314,7 +312,6 @@ TEST_CASE("mappo: demonstrations from MAPPO policies, one per team size through 
     cc.n_train_max = 2;
     cc.episodes = 2;
     cc.successful_only = false;
-    cc.quiet = true;
     DemoSet set = collect_demonstrations(cc, mappo_demonstrator(pattern), "mappo:" + pattern);
     REQUIRE(set.episodes.size() == 4);
     CHECK(set.episodes[0].agents == 1);

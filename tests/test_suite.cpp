@@ -57,7 +57,6 @@ std::string make_tiny_models(const std::string& root) {
     cc.maps = {"empty"};
     cc.n_train_max = 2;
     cc.episodes = 3;
-    cc.quiet = true;
     madbp::DemoSet demos = madbp::collect_demonstrations(cc, madbp::expert_demonstrator(), "expert");
     madbp::TrainConfig tc;
     tc.n_train_max = 2;
@@ -65,7 +64,6 @@ std::string make_tiny_models(const std::string& root) {
     tc.batch = 4;
     tc.val_batches = 1;
     tc.out = dir + "/madbp-default.safetensors";
-    tc.quiet = true;
     madbp::MadbpModel model(tiny_model_config(), 0);
     madbp::train(demos, model, tc);
     // One tiny model under every MA-DBP name: the suite reads each file's own window H.
@@ -78,7 +76,6 @@ std::string make_tiny_models(const std::string& root) {
     m.iterations = 1;
     m.worlds = 2;
     m.hidden = 8;
-    m.quiet = true;
     m.out = dir + "/mappo/empty-2.safetensors";
     madbp::train_mappo(m);
     return dir;

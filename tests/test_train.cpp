@@ -32,7 +32,6 @@ const DemoSet& tiny_demos() {
         c.maps = {"empty", "barrier"};
         c.n_train_max = 2;
         c.episodes = 6;
-        c.quiet = true;
         return collect_demonstrations(c, expert_demonstrator(), "expert");
     }();
     return set;
@@ -48,7 +47,6 @@ TrainConfig tiny_train(const std::string& out) {
     t.log_every = 10;
     t.val_batches = 2;
     t.out = out;
-    t.quiet = true;
     t.seed = 3;
     return t;
 }
@@ -257,15 +255,39 @@ TEST_CASE("training: killed after a checkpoint, resumed, ends where an uninterru
     TrainReport rep = train(demos, resumed, tr);
     CHECK(rep.steps == 30);
     CHECK(resumed.params->value == straight.params->value);
-    // A resume with another seed is another run: refused.
-    TrainConfig other_seed = tr;
-    other_seed.seed = 4;
-    MadbpModel m4(tiny_config(), 1);
-    CHECK_THROWS_WITH_AS(train(demos, m4, other_seed), doctest::Contains("train.seed"), std::runtime_error);
+    CHECK(resumed.params->state == straight.params->state);  // BatchNorm running statistics too
+    // The loss curve continues seamlessly: the same file as the uninterrupted run's.
+    auto text = [](const std::string& path) { std::ifstream f(path); return std::string(std::istreambuf_iterator<char>(f), {}); };
+    CHECK(text(b + ".csv") == text(a + ".csv"));
+    CHECK(rep.curve.rows.size() == 3);
+    // A resume by another run is refused, naming what differs: seed, learning rate, loss
+    // weights, curriculum, data.
+    auto refused = [&](TrainConfig t, const DemoSet& data, const char* field) {
+        MadbpModel m(tiny_config(), 1);
+        CHECK_THROWS_WITH_AS(train(data, m, t), doctest::Contains(field), std::runtime_error);
+    };
+    TrainConfig other = tr;
+    other.seed = 4;
+    refused(other, demos, "train.seed");
+    other = tr;
+    other.lr = 1e-3f;
+    refused(other, demos, "train.lr");
+    other = tr;
+    other.loss_weights[3] = 0.5f;
+    refused(other, demos, "train.loss_weights");
+    other = tr;
+    other.curriculum_end = 0.9f;
+    refused(other, demos, "train.curriculum_end");
+    other = tr;
+    other.n_train_max = 1;
+    refused(other, demos, "train.n_train_max");
+    DemoSet fewer = demos;
+    fewer.episodes.pop_back();
+    refused(tr, fewer, "train.data");
     // A state file of another configuration is refused.
-    ModelConfig other = tiny_config();
-    other.dim = 8;
-    MadbpModel wrong(other, 1);
+    ModelConfig other_config = tiny_config();
+    other_config.dim = 8;
+    MadbpModel wrong(other_config, 1);
     CHECK_THROWS_AS(train(demos, wrong, tr), std::runtime_error);
     remove_run(a);
     remove_run(b);

@@ -1,7 +1,7 @@
 // bench_alloc.cpp - heap allocations per diffusion plan once sizes are steady (SPEC 9: none).
 // A program of its own because it replaces malloc and operator new (tests/alloc_counter.hpp);
 // the shipped tool keeps the system allocator.
-//   build/bench_alloc [--model FILE] [--agents 1,2,4,8,16,32] [--plans N] [--json]
+//   build/bench_alloc [--model FILE] [--agents 1,2,4,8,16,32] [--plans N] [--guidance W] [--candidates K] [--json]
 #include <cstdio>
 
 #include "cli_common.hpp"
@@ -17,6 +17,8 @@ int main(int argc, char** argv) {
         std::string model_path = a.str("--model", "");
         std::vector<long> teams = a.integers("--agents", "1,2,4,8,16,32", 1, 1024);
         int plans = (int)a.integer("--plans", 10, 1, 1000000);
+        const double guidance = a.real("--guidance", 0, 0, 1e6);  // conflict-aware sampling (SamplerConfig)
+        const int candidates = (int)a.integer("--candidates", 1, 1, madbp::kMaxCandidates);
         bool json = a.flag("--json");
         a.finish();
         if (!MADBP_TEST_COUNT_ALLOCS) throw std::runtime_error("built with a sanitizer that owns malloc: nothing can be counted");
@@ -26,6 +28,8 @@ int main(int argc, char** argv) {
             madbp::MadbpModel model = model_path.empty() ? madbp::MadbpModel(madbp::ModelConfig{}) : madbp::load_model(model_path);
             if (n > model.config.n_max) throw std::invalid_argument("--agents: " + std::to_string(n) + " exceeds the model's n_max");
             madbp::DiffusionPlanner planner(std::move(model));
+            planner.sampler.guidance = (float)guidance;
+            planner.sampler.candidates = candidates;
             madbp::World world = madbp::make_random_world("empty", (int)n, 0, n > 16 ? 2.4 : 1.2);
             madbp::Plan plan;
             for (int i = 0; i < 3; ++i) planner.plan_into(world, plan);  // warm-up: workspaces take their sizes

@@ -63,6 +63,8 @@ inline int bench_plan(Args& a) {
     int plans = (int)a.integer("--plans", 50, 1, 1000000);
     int steps = (int)a.integer("--sample-steps", 0, 0, 1000);
     uint64_t seed = (uint64_t)a.integer("--seed", 0, 0);
+    const double guidance = a.real("--guidance", 0, 0, 1e6);
+    const int candidates = (int)a.integer("--candidates", 1, 1, madbp::kMaxCandidates);
     bool json = a.flag("--json");
     a.finish();
     madbp::set_num_threads(1);  // SPEC 9: one core
@@ -72,9 +74,9 @@ inline int bench_plan(Args& a) {
     // The GEMM of the first down block's convolution for 8 agents: (C0, D*k) x (D*k, H*8).
     const double gemm = eigen_gemm_rate(config.channels[0], config.dim * config.kernel, config.horizon * 8);
     if (!json)
-        std::printf("plan bench: %s, S = %d, one thread; Eigen GEMM %dx%d * %dx%d: %.1f GFLOP/s\n"
+        std::printf("plan bench: %s, S = %d, guidance %g, candidates %d, one thread; Eigen GEMM %dx%d * %dx%d: %.1f GFLOP/s\n"
                     "%4s %10s %10s %8s\n",
-                    model_path.empty() ? "default config (random weights: time does not depend on them)" : model_path.c_str(), S,
+                    model_path.empty() ? "default config (random weights: time does not depend on them)" : model_path.c_str(), S, guidance, candidates,
                     config.channels[0], config.dim * config.kernel, config.dim * config.kernel, config.horizon * 8, gemm, "n",
                     "ms/plan", "GFLOP/s", "of GEMM");
     for (long n : teams) {
@@ -82,6 +84,8 @@ inline int bench_plan(Args& a) {
         madbp::MadbpModel model = model_path.empty() ? madbp::MadbpModel(config, seed) : madbp::load_model(model_path);
         madbp::DiffusionPlanner planner(std::move(model), seed);
         planner.sampler.sample_steps = S;
+        planner.sampler.guidance = (float)guidance;
+        planner.sampler.candidates = candidates;
         // Larger teams need a larger world to spawn in (starts and goals 0.25 apart).
         madbp::World world = madbp::make_random_world("empty", (int)n, seed, n > 16 ? 2.4 : 1.2);
         madbp::Plan plan;
@@ -89,9 +93,10 @@ inline int bench_plan(Args& a) {
         auto t0 = std::chrono::steady_clock::now();
         for (int i = 0; i < plans; ++i) planner.plan_into(world, plan);
         const double secs = std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count();
-        const double ms = 1000 * secs / plans, rate = plan_flops(config, (int)n, S) / (secs / plans) / 1e9;
+        const double ms = 1000 * secs / plans, rate = plan_flops(config, (int)n * candidates, S) / (secs / plans) / 1e9;
         if (json)
-            std::printf("%s\n", Json().add("bench", "plan").add("agents", n).add("sample_steps", S).add("ms_per_plan", ms)
+            std::printf("%s\n", Json().add("bench", "plan").add("agents", n).add("sample_steps", S).add("guidance", guidance)
+                                    .add("candidates", candidates).add("ms_per_plan", ms)
                                     .add("gflops", rate).add("gemm_gflops", gemm).add("share_of_gemm", rate / gemm).line().c_str());
         else
             std::printf("%4ld %10.3f %10.1f %7.0f%%\n", n, ms, rate, 100 * rate / gemm);

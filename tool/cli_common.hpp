@@ -1,7 +1,11 @@
 // cli_common.hpp - argument parsing and output helpers shared by the madbp command-line tool.
 // Not part of the library: the tool's own plumbing.
 #pragma once
+#include <unistd.h>
+
 #include <algorithm>
+#include <chrono>
+#include <memory>
 #include <cstdio>
 #include <map>
 #include <set>
@@ -10,10 +14,14 @@
 #include <string>
 #include <vector>
 
+#include "madbp_train.hpp"  // ProgressFn, Curve
+
 namespace madbp_cli {
 
-// "--key value" and "--flag" arguments. Every key a subcommand reads is recorded, so that an
-// unknown flag (a typo) is reported instead of silently ignored: call finish() after reading.
+// "--key value", "--key=value" and "--flag" arguments. Every key a subcommand reads is
+// recorded, so that an unknown flag (a typo) is reported instead of silently ignored: call
+// finish() after reading. A value may start with a single '-' (--goal-reach -0.5: then the
+// reader's range decides); an empty value (--episodes=, --out "") is an error, never the default.
 struct Args {
     std::map<std::string, std::string> values;
     std::set<std::string> flags, used;
@@ -45,6 +53,8 @@ struct Args {
         used.insert(key);
         if (flags.count(key)) throw std::invalid_argument(key + ": needs a value");
         auto it = values.find(key);
+        if (it != values.end() && it->second.empty())
+            throw std::invalid_argument(key + ": empty value (give a value, or leave " + key + " out for its default)");
         return it == values.end() ? def : it->second;
     }
     long integer(const std::string& key, long def, long lo = -(1L << 40), long hi = (1L << 40)) {
@@ -93,6 +103,15 @@ struct Args {
     }
 };
 
+// A --scene fixes the map, the team and the world size: --map, --agents or --half-size beside
+// it is an error, not silently ignored.
+inline void refuse_scene_overrides(const Args& a, const std::string& scene_path) {
+    if (scene_path.empty()) return;
+    for (const char* k : {"--map", "--agents", "--half-size"})
+        if (a.has(k))
+            throw std::invalid_argument(std::string(k) + ": --scene " + scene_path + " fixes the map, the team and the world size; leave " + k + " out");
+}
+
 // One JSON object per line, built field by field: Json().add("method", m).add("n", 4).line().
 struct Json {
     std::string body;
@@ -121,5 +140,78 @@ struct Json {
     Json& add(const std::string& k, bool v) { return raw(k, v ? "true" : "false"); }
     std::string line() const { return "{" + body + "}"; }
 };
+
+// A madbp::ProgressFn that draws "label  120/1000  37.2/s  ETA 24s  note" in place on stderr
+// when it is a terminal, and nothing otherwise (CI logs).
+inline madbp::ProgressFn progress_line(const std::string& label) {
+    if (!isatty(fileno(stderr))) return nullptr;
+    struct Line {
+        std::string label;
+        std::chrono::steady_clock::time_point start = std::chrono::steady_clock::now(), last{};
+        long first = -1;  // the count at the first call (a resumed run starts part-way)
+        bool open = false;
+        ~Line() { if (open) std::fprintf(stderr, "\n"); }
+    };
+    auto line = std::make_shared<Line>();
+    line->label = label;
+    return [line](long done, long total, const std::string& note) {
+        Line& l = *line;
+        const auto now = std::chrono::steady_clock::now();
+        if (l.first < 0) l.first = done - 1, l.start = now;
+        if (done < total && now - l.last < std::chrono::milliseconds(200)) return;
+        l.last = now;
+        const double secs = std::chrono::duration<double>(now - l.start).count(), rate = secs > 0 ? (done - l.first) / secs : 0;
+        std::fprintf(stderr, "\r%s  %ld/%ld  %.1f/s  ETA %.0fs  %s\033[K", l.label.c_str(), done, total, rate,
+                     rate > 0 ? (total - done) / rate : 0.0, note.c_str());
+        l.open = done < total;
+        if (!l.open) std::fprintf(stderr, "\n");
+        std::fflush(stderr);
+    };
+}
+
+// An SVG line chart of a training curve: `series` columns against column 0 (step). Log scale
+// (shared axis) for losses; otherwise each series is scaled to its own range (noted in the key).
+inline void write_curve_svg(const std::string& path, const madbp::Curve& curve, const std::vector<std::string>& series,
+                            const std::string& title, bool log_scale) {
+    if (curve.rows.empty()) return;
+    const double x_max = std::max(1.0, curve.rows.back()[0]);
+    auto X = [&](double s) { return 60 + 520 * s / x_max; };
+    auto num = [](double v) { char b[32]; std::snprintf(b, sizeof b, "%.1f", v); return std::string(b); };
+    const char* colors[4] = {"#1f77b4", "#d62728", "#2ca02c", "#9467bd"};
+    double lo_all = 1e300, hi_all = -1e300;
+    for (const std::string& name : series) {
+        const int k = curve.column(name);
+        for (const auto& r : curve.rows)
+            if (!log_scale || r[k] > 0) lo_all = std::min(lo_all, r[k]), hi_all = std::max(hi_all, r[k]);
+    }
+    if (!(hi_all >= lo_all)) return;
+    std::string svg = "<svg xmlns='http://www.w3.org/2000/svg' width='600' height='360' font-family='sans-serif' font-size='11'>\n"
+                      "<rect width='600' height='360' fill='white'/>\n<text x='60' y='14'>" + title + "</text>\n";
+    for (size_t s = 0; s < series.size() && s < 4; ++s) {
+        const int k = curve.column(series[s]);
+        double lo = lo_all, hi = hi_all;
+        if (!log_scale) {
+            lo = 1e300, hi = -1e300;
+            for (const auto& r : curve.rows) lo = std::min(lo, r[k]), hi = std::max(hi, r[k]);
+            if (!(hi > lo)) hi = lo + 1;
+        }
+        auto Y = [&](double v) {
+            const double u = log_scale ? (std::log10(std::max(v, lo)) - std::log10(lo)) / std::max(1e-9, std::log10(hi) - std::log10(lo))
+                                       : (v - lo) / (hi - lo);
+            return 320 - 290 * u;
+        };
+        svg += "<polyline fill='none' stroke='" + std::string(colors[s]) + "' points='";
+        for (const auto& r : curve.rows)
+            if (!log_scale || r[k] > 0) svg += num(X(r[0])) + "," + num(Y(r[k])) + " ";
+        char key[160];
+        std::snprintf(key, sizeof key, "%s (%.3g .. %.3g)", series[s].c_str(), lo, hi);
+        svg += "'/>\n<text x='380' y='" + std::to_string(30 + 14 * s) + "' fill='" + colors[s] + "'>" + key + "</text>\n";
+    }
+    char foot[160];
+    std::snprintf(foot, sizeof foot, "<text x='60' y='345'>%s 0 .. %.0f%s</text>\n</svg>\n", curve.columns[0].c_str(), x_max,
+                  log_scale ? " (log scale)" : " (each series on its own scale)");
+    svg += foot;
+    madbp::write_text_file(path, svg);
+}
 
 }  // namespace madbp_cli

@@ -17,7 +17,7 @@
 #include "madbp_sim.hpp"
 
 #include "methods.hpp"
-#include "suite.hpp"  // eval --suite paper: every table and figure (README "Evaluation suite")
+#include "suite.hpp"  // eval --suite paper: every table and figure (docs/evaluation.md)
 #include "bench_nn.hpp"
 #include "bench_plan.hpp"
 
@@ -25,11 +25,25 @@ using namespace madbp_cli;
 
 namespace {
 
+// render records every frame of the episode: its step limit bounds the log and the SVG.
+constexpr int kMaxRenderSteps = 10000;
+
 std::string fixed(double v, int prec) {
     if (!(v == v)) return "-";
     char b[32];
     std::snprintf(b, sizeof b, "%.*f", prec, v);
     return b;
+}
+
+// --scenario NAME (an interaction scene generator), checked; not with --scene.
+std::string read_scenario(Args& a, const std::string& scene_path) {
+    std::string name = a.str("--scenario", "");
+    if (name.empty()) return name;
+    if (!scene_path.empty()) throw std::invalid_argument("--scenario: not with --scene (a scene file fixes the problem)");
+    const auto& names = madbp::interaction_scenarios();
+    if (std::find(names.begin(), names.end(), name) == names.end())
+        throw std::invalid_argument("--scenario: unknown scenario '" + name + "' (expected swap, cross, gap, corridor, parked or circle)");
+    return name;
 }
 
 // ---------------------------------------------------------------------------------------------
@@ -44,35 +58,40 @@ int cmd_eval(Args& a) {
             "  --episodes N      episodes per cell (default 100)\n"
             "  --seed S          episode i uses seed S+i (default 0)\n"
             "  --scene FILE      a fixed problem (SPEC 2) instead of random maps; seeds vary only\n"
-            "                    the method's own randomness\n"
+            "                    the method's own randomness (not with --map, --agents, --half-size)\n"
+            "  --scenario NAME   interaction scenes instead of random spawns on each --map, n <= 4: swap,\n"
+            "                    cross, gap, corridor, parked, circle (madbp_sim.hpp Section 4b)\n"
             "  --no-filter       turn the safety filter off (line and planners)\n"
             "  --replan M        steps executed per plan (default 8)\n"
             "  --threads T       episodes in parallel (default 1; results do not depend on it)\n"
-            "  --half-size H     half-size of random worlds (default 1.2; 2.4 = twice the side)\n"
+            "  --half-size H     half-size of random worlds (default 1.2; 2.4 = twice the side; at most 100)\n"
             "  --max-steps N     episode step limit (default 100)\n"
             "  --json            one JSON object per cell instead of the table\n"
             "  --suite paper     every table and figure of the paper plus ours (--suite paper --help)\n"
             "Columns: method, map, n_train, n, episodes, success, success_se, collisions (per\n"
-            "episode), steps (mean of successful episodes), plan_ms (mean per plan).\n",
+            "episode), steps (mean of successful episodes), plan_ms (mean ms per decision: one plan for\n"
+            "planners, one action for MAPPO and MADiff).\n",
             method_list().c_str());
         return 0;
     }
     std::string method_name = a.str("--method", "expert");
-    std::vector<std::string> maps = split(a.str("--map", "empty"));
+    std::vector<std::string> maps = split(a.str("--map", "empty"), "--map");
     std::vector<long> counts = a.integers("--agents", "2,4,6", 1, 64);
     int episodes = (int)a.integer("--episodes", 100, 1, 1000000);
     uint64_t seed = (uint64_t)a.integer("--seed", 0, 0);
     std::string scene_path = a.str("--scene", "");
+    std::string scenario = read_scenario(a, scene_path);
     bool json = a.flag("--json");
     MethodSetup setup;
     setup.filter = !a.flag("--no-filter");
     setup.replan = (int)a.integer("--replan", 8, 1, 1000);
     int threads = (int)a.integer("--threads", 1, 1, 256);
-    double half_size = a.real("--half-size", 1.2, 0.6, 100);
+    double half_size = a.real("--half-size", 1.2, 0.6, madbp::kMaxHalfSize);
     int max_steps = (int)a.integer("--max-steps", 100, 1, 1000000);
     auto all = methods();
     const Method& method = find_method(all, method_name);
     madbp::Scene scene;
+    refuse_scene_overrides(a, scene_path);
     if (!scene_path.empty()) {
         scene = madbp::load_scene(scene_path);
         maps = {"scene"};
@@ -103,24 +122,28 @@ int cmd_eval(Args& a) {
             c.episodes = episodes;
             c.seed = seed;
             c.threads = threads;
+            c.progress = progress_line("eval " + m + " n=" + std::to_string(n));
             c.half_size = half_size;
             c.world.max_steps = max_steps;
             c.scene = scene_path.empty() ? nullptr : &scene;
+            c.scenario = scenario;
             madbp::EvalResult r = madbp::evaluate(c, spec.factory);
             if (json) {
                 Json j;
                 j.add("method", method_name).add("map", m);
+                if (!scenario.empty()) j.add("scenario", scenario);
                 if (spec.n_train >= 0) j.add("n_train", spec.n_train); else j.raw("n_train", "null");
                 j.add("n", n).add("episodes", episodes).add("success", r.success).add("success_se", r.success_se)
                     .add("collisions", r.collisions).add("agent_collisions", r.agent_collisions)
-                    .add("obstacle_collisions", r.obstacle_collisions).add("steps", r.steps).add("plan_ms", r.plan_ms)
+                    .add("obstacle_collisions", r.obstacle_collisions).add("steps", r.steps).add("plan_ms", r.decision_ms)
                     .add("seed", (long)seed);
                 std::printf("%s\n", j.line().c_str());
             } else {
-                std::printf("%-8s %-10s %7s %3ld %8d %8s %10s %10s %6s %8s\n", method_name.c_str(), m.c_str(),
+                std::printf("%-8s %-10s %7s %3ld %8d %8s %10s %10s %6s %8s\n", method_name.c_str(),
+                            (scenario.empty() ? m : m + "/" + scenario).c_str(),
                             spec.n_train >= 0 ? std::to_string(spec.n_train).c_str() : "-", n, episodes, fixed(r.success, 2).c_str(),
                             fixed(r.success_se, 3).c_str(), fixed(r.collisions, 2).c_str(), fixed(r.steps, 1).c_str(),
-                            fixed(r.plan_ms, 3).c_str());
+                            fixed(r.decision_ms, 3).c_str());
             }
             std::fflush(stdout);
         }
@@ -129,17 +152,20 @@ int cmd_eval(Args& a) {
 
 // Runs one recorded episode and writes its SVG; shared by render and demo.
 int render_episode(const Method& method, Args& a, MethodSetup setup, const madbp::Scene* scene, uint64_t seed,
-                   const std::string& out, bool animate, bool json, double half_size = 1.2, int max_steps = 100) {
+                   const std::string& out, bool animate, bool json, double half_size = 1.2, int max_steps = 100,
+                   const std::string& scenario = "") {
     MethodSpec spec = method.make(a, setup);
     a.finish();
     madbp::WorldConfig wc;
     wc.max_steps = max_steps;
-    madbp::World world = scene ? madbp::make_world(*scene, wc) : madbp::make_random_world(setup.map, setup.agents, seed, half_size, wc);
+    madbp::World world = scene               ? madbp::make_world(*scene, wc)
+                         : !scenario.empty() ? madbp::make_interaction_world(scenario, setup.map, setup.agents, seed, half_size, wc)
+                                             : madbp::make_random_world(setup.map, setup.agents, seed, half_size, wc);
     auto policy = spec.factory(world, seed);
     madbp::EpisodeResult r = madbp::run_episode(world, *policy, true);
     madbp::SvgOptions opt;
     opt.animate = animate;
-    opt.title = method.name + "  " + setup.map + "  n=" + std::to_string(setup.agents) + "  seed " + std::to_string(seed) +
+    opt.title = method.name + "  " + setup.map + (scenario.empty() ? "" : "/" + scenario) + "  n=" + std::to_string(setup.agents) + "  seed " + std::to_string(seed) +
                 (r.success ? "  success in " + std::to_string(r.steps) + " steps" : "  failed") +
                 "  collisions " + std::to_string(r.collisions());
     madbp::write_text_file(out, madbp::render_svg(r.log, opt));
@@ -161,10 +187,12 @@ int cmd_render(Args& a) {
             "  --map NAME     empty, obstacles, barrier (default barrier)\n"
             "  --agents N     team size (default 4)\n"
             "  --seed S       episode seed (default 0)\n"
-            "  --scene FILE   a fixed problem instead of a random one\n"
+            "  --scene FILE   a fixed problem instead of a random one (not with --map, --agents, --half-size)\n"
+            "  --scenario NAME  an interaction scene on --map instead of random spawns (n <= 4; as for eval)\n"
             "  --out FILE     output (default episode.svg)\n"
             "  --animate      an animated SVG that plays the episode\n"
-            "  --no-filter, --replan M, --half-size H, --max-steps N   as for eval\n"
+            "  --no-filter, --replan M, --half-size H   as for eval\n"
+            "  --max-steps N  episode step limit (default 100, at most 10000: every frame is drawn)\n"
             "  --json         print the result as JSON\n",
             method_list().c_str());
         return 0;
@@ -178,16 +206,18 @@ int cmd_render(Args& a) {
     setup.replan = (int)a.integer("--replan", 8, 1, 1000);
     uint64_t seed = (uint64_t)a.integer("--seed", 0, 0);
     std::string scene_path = a.str("--scene", ""), out = a.str("--out", "episode.svg");
+    std::string scenario = read_scenario(a, scene_path);
     bool animate = a.flag("--animate"), json = a.flag("--json");
-    double half_size = a.real("--half-size", 1.2, 0.6, 100);
-    int max_steps = (int)a.integer("--max-steps", 100, 1, 1000000);
+    double half_size = a.real("--half-size", 1.2, 0.6, madbp::kMaxHalfSize);
+    int max_steps = (int)a.integer("--max-steps", 100, 1, kMaxRenderSteps);
     madbp::Scene scene;
+    refuse_scene_overrides(a, scene_path);
     if (!scene_path.empty()) {
         scene = madbp::load_scene(scene_path);
         setup.map = "scene";
         setup.agents = (int)scene.starts.size();
     }
-    return render_episode(method, a, setup, scene_path.empty() ? nullptr : &scene, seed, out, animate, json, half_size, max_steps);
+    return render_episode(method, a, setup, scene_path.empty() ? nullptr : &scene, seed, out, animate, json, half_size, max_steps, scenario);
 }
 
 int cmd_demo(Args& a) {
@@ -228,7 +258,8 @@ int cmd_bench(Args& a) {
             "  --nn           benchmark the neural-network kernels instead\n"
             "  --plan         benchmark the diffusion planner instead: ms per plan and GFLOP/s against\n"
             "                 Eigen's GEMM (allocations: build/bench_alloc); with --agents LIST (default\n"
-            "                 1,2,4,8,16,32), --plans N, --sample-steps S, --model FILE\n"
+            "                 1,2,4,8,16,32), --plans N, --sample-steps S, --model FILE, --guidance W,\n"
+            "                 --candidates K (conflict-aware sampling, as for eval --method madbp)\n"
             "  --json         one JSON object per thread count\n");
         return 0;
     }

@@ -39,12 +39,16 @@ struct Method {
 
 namespace madbp_cli {
 
-inline std::vector<std::string> split(const std::string& s) {
+// A comma-separated list given to flag `key`; an empty list or an empty item ("a,,b", "a,")
+// is an error naming the flag.
+inline std::vector<std::string> split(const std::string& s, const std::string& key = "list") {
     std::vector<std::string> out;
     std::stringstream ss(s);
-    for (std::string item; std::getline(ss, item, ',');)
-        if (!item.empty()) out.push_back(item);
-    if (out.empty()) throw std::invalid_argument("empty list '" + s + "'");
+    for (std::string item; std::getline(ss, item, ',');) {
+        if (item.empty()) throw std::invalid_argument(key + ": empty item in '" + s + "'");
+        out.push_back(item);
+    }
+    if (out.empty() || s.back() == ',') throw std::invalid_argument(key + ": empty item in '" + s + "'");
     return out;
 }
 
@@ -55,7 +59,7 @@ inline std::vector<Method> methods() {
                  "                    --clf C_EV,C_VV,EPS (default 1,0.2,3), --clf-no-drag (VMAS's LfV)",
                  [](Args& a, const MethodSetup&) {
                      madbp::ClfQpParams p;
-                     std::vector<std::string> c = split(a.str("--clf", "1,0.2,3"));
+                     std::vector<std::string> c = split(a.str("--clf", "1,0.2,3"), "--clf");
                      if (c.size() != 3) throw std::invalid_argument("--clf: expected C_EV,C_VV,EPS, e.g. 1,0.2,3");
                      double* dst[3] = {&p.c_ev, &p.c_vv, &p.eps};
                      for (int k = 0; k < 3; ++k) {

@@ -105,8 +105,15 @@ inline int cmd_madiff(Args& a) {
     const size_t slash = tc.out.find_last_of('/');
     if (slash != std::string::npos && slash > 0) ::mkdir(tc.out.substr(0, slash).c_str(), 0755);  // e.g. models/madiff; exists: fine
     madbp::MadiffModel model(mc);
+    tc.progress = progress_line("madiff " + mc.map + " n=" + std::to_string(mc.agents));
     const madbp::MadiffReport r = madbp::train_madiff(demos, mc, tc, &model);
-    const madbp::MadiffLoss last = r.curve.empty() ? madbp::MadiffLoss{} : r.curve.back().loss;
+    madbp::MadiffLoss last;
+    if (!r.curve.rows.empty()) {
+        const auto& row = r.curve.rows.back();
+        last.total = row[r.curve.column("loss")];
+        last.diffusion = row[r.curve.column("diffusion")];
+        last.inverse = row[r.curve.column("inverse")];
+    }
     if (json)
         std::printf("%s\n", Json().add("out", tc.out).add("map", mc.map).add("agents", mc.agents).add("steps", r.steps)
                                 .add("seconds", r.seconds).add("episodes", r.episodes).add("windows", r.windows)

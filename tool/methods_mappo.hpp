@@ -84,7 +84,7 @@ inline std::vector<DecisionTime> measure_decision_times(const std::vector<long>&
             auto planner = std::make_shared<madbp::DiffusionPlanner>(model->clone(), seed);
             madbp::PlanFollower follower([planner](const madbp::World& w) { return planner->plan(w); }, fc);
             d.madbp_us = time_policy_us(follower, (int)n, steps, seed);
-            d.madbp_plan_ms = follower.plan_ms();
+            d.madbp_plan_ms = follower.decision_ms();
         }
         out.push_back(d);
     }
@@ -148,7 +148,7 @@ inline int cmd_mappo(Args& a) {
     c.lr = (float)a.real("--lr", c.lr, 1e-8, 1);
     c.gamma = (float)a.real("--gamma", c.gamma, 0, 1);
     c.lambda = (float)a.real("--lambda", c.lambda, 0, 1);
-    c.ppo.clip = (float)a.real("--clip", c.ppo.clip, 1e-4, 10);
+    c.ppo.ratio_clip = (float)a.real("--clip", c.ppo.ratio_clip, 1e-4, 10);
     c.ppo.ent_coef = (float)a.real("--ent-coef", c.ppo.ent_coef, 0, 10);
     c.ppo.vf_coef = (float)a.real("--vf-coef", c.ppo.vf_coef, 0, 100);
     c.max_grad_norm = (float)a.real("--max-grad-norm", c.max_grad_norm, 1e-6, 1e6);
@@ -174,8 +174,13 @@ inline int cmd_mappo(Args& a) {
     }
     const size_t slash = c.out.find_last_of('/');
     if (slash != std::string::npos && slash > 0) ::mkdir(c.out.substr(0, slash).c_str(), 0755);  // e.g. models/mappo; exists: fine
+    c.progress = progress_line("mappo " + c.map + " n=" + std::to_string(c.agents));
     madbp::MappoReport r = madbp::train_mappo(c);
-    const madbp::MappoCurveRow last = r.curve.empty() ? madbp::MappoCurveRow{} : r.curve.back();
+    if (!c.out.empty())
+        write_curve_svg(c.out + ".svg", r.curve, {"success", "episode_return"}, "MAPPO " + c.map + " n=" + std::to_string(c.agents), false);
+    struct { double success = 0, episode_return = 0; } last;
+    if (!r.curve.rows.empty())
+        last = {r.curve.rows.back()[r.curve.column("success")], r.curve.rows.back()[r.curve.column("episode_return")]};
     if (json)
         std::printf("%s\n", Json().add("out", c.out).add("map", c.map).add("agents", c.agents).add("iterations", r.iterations)
                                 .add("env_steps", r.env_steps).add("seconds", r.seconds).add("train_success", last.success)

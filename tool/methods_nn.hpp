@@ -17,14 +17,34 @@ struct PlannerOptions {
     bool goal_inpaint = true;
     double goal_reach = -1;    // < 0: the model's default_goal_reach
     int neighbours = 0;        // > 0: neighbourhood planning (DiffusionPlanner::neighbours)
+    double guidance = 0;       // SamplerConfig::guidance (0: off)
+    int candidates = 1;        // SamplerConfig::candidates (1: off)
+    madbp::WindowCost cost;    // SamplerConfig::cost
 };
+// "A,M,G": the agent, map and goal weights of the window cost.
+inline void read_cost_weights(const std::string& s, madbp::WindowCost& w) {
+    if (s.empty()) return;
+    float v[3];
+    char tail = 0;
+    if (std::sscanf(s.c_str(), "%f,%f,%f%c", &v[0], &v[1], &v[2], &tail) != 3)
+        throw std::invalid_argument("--cost-weights: expected three numbers AGENT,MAP,GOAL like 100,100,1, got '" + s + "'");
+    for (float x : v)
+        if (!(x >= 0) || !std::isfinite(x)) throw std::invalid_argument("--cost-weights: weights must be finite and >= 0 (got '" + s + "')");
+    w.agent_weight = v[0];
+    w.map_weight = v[1];
+    w.goal_weight = v[2];
+}
 inline PlannerOptions read_planner_options(Args& a) {
     PlannerOptions o;
     o.model_path = a.str("--model", kDefaultModel);
     o.sample_steps = (int)a.integer("--sample-steps", 0, 0, 1000);
     o.goal_inpaint = !a.flag("--no-goal-inpaint");
-    o.goal_reach = a.real("--goal-reach", -1, -1, 100);
+    o.goal_reach = a.real("--goal-reach", -1, 0, 100);  // a negative value is an error, not the default
     o.neighbours = (int)a.integer("--neighbours", 0, 0, 1024);
+    o.guidance = a.real("--guidance", 0, 0, 1e6);
+    o.candidates = (int)a.integer("--candidates", 1, 1, madbp::kMaxCandidates);
+    read_cost_weights(a.str("--cost-weights", ""), o.cost);
+    o.cost.agent_margin = (float)a.real("--cost-margin", o.cost.agent_margin, 0, 10);
     return o;
 }
 
@@ -51,6 +71,9 @@ inline MethodSpec madbp_method(const PlannerOptions& o, const MethodSetup& s) {
         planner->sampler.goal_inpaint = o.goal_inpaint;
         if (o.goal_reach >= 0) planner->sampler.goal_reach = (float)o.goal_reach;
         planner->neighbours = o.neighbours;
+        planner->sampler.guidance = (float)o.guidance;
+        planner->sampler.candidates = o.candidates;
+        planner->sampler.cost = o.cost;
         return std::make_unique<madbp::PlanFollower>([planner](const madbp::World& w) { return planner->plan(w); }, fc);
     };
     return spec;
@@ -61,11 +84,43 @@ inline void register_nn_methods(std::vector<Method>& m) {
                  "MA-DBP diffusion planner + tracker (+ safety filter) (SPEC 5-8); --model FILE\n"
                  "                    (default models/madbp-default.safetensors), --sample-steps S,\n"
                  "                    --no-goal-inpaint, --goal-reach R (world units; default 0.55),\n"
-                 "                    --neighbours K (each agent plans with its K-1 nearest; 0 = whole team)",
+                 "                    --neighbours K (each agent plans with its K-1 nearest; 0 = whole team),\n"
+                 "                    conflict-aware sampling (issue 12; default off): --guidance W (each DDIM\n"
+                 "                    step moves x0_hat's waypoints by -W * d cost / d waypoint), --candidates K\n"
+                 "                    (best of K windows per scene), --cost-weights A,M,G (robot-robot, robot-map,\n"
+                 "                    goal; default 100,100,1), --cost-margin M (robot-robot, default 0.05)",
                  [](Args& a, const MethodSetup& s) { return madbp_method(read_planner_options(a), s); }});
 }
 
 // ---------------------------------------------------------------------------------------------
+// --scenarios: "NAME:FRACTION,..." (all:F = F split evenly among every scenario); "" = none.
+inline std::vector<std::pair<std::string, double>> parse_scenario_mix(const std::string& list) {
+    std::vector<std::pair<std::string, double>> mix;
+    if (list.empty()) return mix;
+    std::stringstream ss(list);
+    for (std::string item; std::getline(ss, item, ',');) {
+        const size_t colon = item.find(':');
+        const std::string name = item.substr(0, colon), frac = colon == std::string::npos ? "" : item.substr(colon + 1);
+        size_t pos = 0;
+        double f = -1;
+        try { f = std::stod(frac, &pos); } catch (...) { pos = 0; }
+        if (frac.empty() || pos != frac.size() || !(f >= 0 && f <= 1))
+            throw std::invalid_argument("--scenarios: expected NAME:FRACTION with a fraction in [0, 1], got '" + item + "'");
+        const auto& names = madbp::interaction_scenarios();
+        if (name == "all") {
+            for (const std::string& n : names) mix.push_back({n, f / names.size()});
+        } else if (std::find(names.begin(), names.end(), name) != names.end()) {
+            mix.push_back({name, f});
+        } else {
+            throw std::invalid_argument("--scenarios: unknown scenario '" + name + "' (expected all, swap, cross, gap, corridor, parked or circle)");
+        }
+    }
+    double total = 0;
+    for (auto& m : mix) total += m.second;
+    if (total > 1 + 1e-9) throw std::invalid_argument("--scenarios: fractions sum to " + std::to_string(total) + ", more than 1");
+    return mix;
+}
+
 inline int cmd_collect(Args& a) {
     if (a.flag("--help")) {
         std::printf(
@@ -75,6 +130,9 @@ inline int cmd_collect(Args& a) {
             "  --n-train-max N   teams of 1..N agents (default 4)\n"
             "  --episodes E      episodes per (map, n) cell (default 500)\n"
             "  --keep-failures   also keep episodes the demonstrator failed\n"
+            "  --scenarios LIST  interaction scenes mixed into every cell of n <= 4, as NAME:FRACTION items\n"
+            "                    (swap, cross, gap, corridor, parked, circle; all:F splits F evenly among\n"
+            "                    them), e.g. all:0.5 or swap:0.2,corridor:0.1; default none (random spawns)\n"
             "  --threads T       parallel episodes (default 2)\n"
             "  --seed S          base seed (default 0)\n"
             "  --out FILE        dataset file (default demos.bin)\n"
@@ -92,6 +150,7 @@ inline int cmd_collect(Args& a) {
         c.maps.push_back(m);
     }
     c.n_train_max = (int)a.integer("--n-train-max", 4, 1, 64);
+    c.scenarios = parse_scenario_mix(a.str("--scenarios", ""));
     c.episodes = (int)a.integer("--episodes", 500, 1, 10000000);
     c.successful_only = !a.flag("--keep-failures");
     c.threads = (int)a.integer("--threads", 2, 1, 256);
@@ -104,6 +163,7 @@ inline int cmd_collect(Args& a) {
     if (dem == "mappo" && model.empty())
         throw std::invalid_argument("--model: --demonstrator mappo needs a policy file, e.g. 'models/mappo/empty-{n}.safetensors' ({n} = team size)");
     auto t0 = std::chrono::steady_clock::now();
+    c.progress = progress_line("collect");
     madbp::DemoSet set = madbp::collect_demonstrations(c, dem == "mappo" ? madbp::mappo_demonstrator(model) : madbp::expert_demonstrator(),
                                                        dem == "mappo" ? "mappo:" + model : dem);
     double secs = std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count();
@@ -136,7 +196,7 @@ inline int cmd_train(Args& a) {
             "  --weights a,b,c,d  loss weights noise,boundary,temporal,collision (default .85,.025,.025,.1)\n"
             "  --horizon H --dim D --heads K --channels C1,C2 --kernel K --n-max N --grid G\n"
             "  --processor AAP|LE --window MW|CT --prediction x0|eps --local-grid G (0: off)\n"
-            "  --window-scale W --waypoint-stride K   model configuration (SPEC 5; defaults in README;\n"
+            "  --window-scale W --waypoint-stride K   model configuration (SPEC 5; defaults in docs/design.md;\n"
             "                     window scale default min(2.4, 0.6 (H-1) stride / 15))\n"
             "  --checkpoint-every N (default 1000)   --seed S (default 0)\n"
             "  --threads T        data-parallel replicas (default 2); results depend on T, not on the machine\n"
@@ -199,9 +259,12 @@ inline int cmd_train(Args& a) {
     tc.threads = threads;
     madbp::set_num_threads(threads);
     madbp::DemoSet demos = madbp::load_demos(data);
+    madbp::validate_demos(demos, mc.n_max, data);  // every team must fit the model's n_max
     madbp::MadbpModel model(mc, tc.seed);
     if (!json) std::printf("train: %zu episodes from '%s', model with %ld parameters\n", demos.episodes.size(), demos.demonstrator.c_str(), model.parameter_count());
+    tc.progress = progress_line("train");
     madbp::TrainReport r = madbp::train(demos, model, tc);
+    write_curve_svg(tc.out + ".svg", r.curve, {"train_total", "val_total"}, "MA-DBP training loss", true);
     if (json)
         std::printf("%s\n", Json().add("out", tc.out).add("steps", r.steps).add("seconds", r.seconds).add("train_loss", r.last_train.total)
                                 .add("val_loss", r.last_val.total).add("val_noise", r.last_val.noise).line().c_str());

@@ -1,5 +1,5 @@
 // suite.hpp - `madbp eval --suite paper`: every table and figure of the paper, plus ours, from
-// one resumable, shardable command (SPEC 9, 10; README "Evaluation suite"). `make results`.
+// one resumable, shardable command (SPEC 9, 10; docs/evaluation.md). `make results`.
 //
 // The suite is a fixed, ordered list of cells. A cell is one measurement, usually an eval of
 // one method on one (map, n), with a stable id such as "table1/barrier/n=3/madbp". Every
@@ -52,7 +52,7 @@ struct SuiteConfig {
     std::vector<std::string> only;   // groups to run (empty: all); reports always cover the whole store
     int episodes = 100;              // per cell; episode i has seed i
     int threads = 2;                 // episodes in parallel (results do not depend on it)
-    std::string models = "models";   // model directory, laid out as models/ (README)
+    std::string models = "models";   // model directory, laid out as models/ (README "Shipped models")
     std::string out = "results";     // store, reports, charts, pictures, fig3a's trained files
     int shard_index = 0, shard_count = 1;
     bool list = false;               // print the cells and their state, run nothing
@@ -99,7 +99,7 @@ struct SuiteConfig {
 };
 
 inline const char* kSuiteHelp =
-    "madbp eval --suite paper - every table and figure of the paper plus ours (README \"Evaluation suite\")\n"
+    "madbp eval --suite paper - every table and figure of the paper plus ours (docs/evaluation.md)\n"
     "  --only GROUPS          comma list of table1, fig4, table2, horizon, dynamic, large, fig3b,\n"
     "                         fig3a, pictures (default all)\n"
     "  --episodes E           episodes per cell, seeds 0..E-1 (default 100)\n"
@@ -363,7 +363,7 @@ struct SuiteCell {
 inline void put_eval_result(SuiteRecord& r, const madbp::EvalResult& e) {
     r.set("episodes", e.episodes).set("success", e.success).set("success_se", e.success_se).set("collisions", e.collisions)
         .set("agent_collisions", e.agent_collisions).set("obstacle_collisions", e.obstacle_collisions).set("steps", e.steps)
-        .set("plan_ms", e.plan_ms);
+        .set("plan_ms", e.decision_ms);
 }
 
 inline madbp::ModelConfig model_config_of(const std::string& path) {
@@ -417,7 +417,7 @@ inline madbp::EvalResult run_eval(const SuiteConfig& cfg, const EpisodeSetup& e,
     c.threads = cfg.threads;
     c.half_size = e.half_size;
     c.world.max_steps = e.max_steps;
-    c.quiet = true;  // the suite prints one line per cell instead
+    // no progress callback: the suite prints one line per cell instead
     return madbp::evaluate(c, factory);
 }
 
@@ -525,7 +525,7 @@ inline madbp::EvalResult summarize_episodes(const std::vector<madbp::EpisodeResu
         if (e.success) steps += e.steps;
         r.agent_collisions += e.agent_collisions;
         r.obstacle_collisions += e.obstacle_collisions;
-        r.plan_ms += e.plan_ms;
+        r.decision_ms += e.decision_ms;
     }
     const double N = std::max<size_t>(1, runs.size());
     r.success = wins / N;
@@ -534,7 +534,7 @@ inline madbp::EvalResult summarize_episodes(const std::vector<madbp::EpisodeResu
     r.obstacle_collisions /= N;
     r.collisions = r.agent_collisions + r.obstacle_collisions;
     r.steps = wins ? steps / wins : NAN;
-    r.plan_ms /= N;
+    r.decision_ms /= N;
     return r;
 }
 
@@ -646,7 +646,7 @@ inline void add_fig3a_cells(std::vector<SuiteCell>& cells, const SuiteConfig& cf
             const auto t0 = std::chrono::steady_clock::now();
             madbp::MappoReport rep = madbp::train_mappo(m);
             r.set("seconds", seconds_since(t0)).set("iterations", rep.iterations).set("env_steps", rep.env_steps)
-                .set("train_success", rep.curve.empty() ? NAN : rep.curve.back().success).set("file", m.out);
+                .set("train_success", rep.curve.rows.empty() ? NAN : rep.curve.rows.back()[rep.curve.column("success")]).set("file", m.out);
             return std::vector<SuiteRecord>{};
         };
         cells.push_back(c);
@@ -1407,7 +1407,7 @@ inline void write_suite_reports(const SuiteConfig& cfg, const std::vector<SuiteC
         counts[c.group][suite_done(st, c) ? "done" : it == st.end() ? "not run" : it->second.status]++;
     }
     std::string md = "# Evaluation suite results (`madbp eval --suite paper`)\n\nRegenerated from `cells.tsv` (one line per "
-                     "finished cell) after every run; see README \"Evaluation suite\".\n\n";
+                     "finished cell) after every run; see docs/evaluation.md.\n\n";
     MdTable t;
     t.header = {"group", "report", "data", "chart", "cells"};
     const std::set<std::string> charts = {"fig4", "horizon", "fig3b", "fig3a"};
