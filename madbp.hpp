@@ -2777,7 +2777,7 @@ void sample_conflict_aware(Denoiser& model, const NoiseSchedule& schedule, const
             if (rb.agent_mask[a] == 0) { w.setZero(); continue; }
             w.col(0).setZero();
             Eigen::Vector2f end;
-            if (sc.goal_inpaint && end_pinned(rb, a, c, sc.goal_reach, &end)) w.col(H - 1) = end;
+            if (sc.goal_inpaint && end_pinned(rb, a, c, sc.goal_reach, &end)) w.col(H - 1).template head<2>() = end;  // a fixed-size target: no vector loads past `end`
         }
     };
     impose();
@@ -2849,7 +2849,7 @@ void sample_windows(Denoiser& model, const NoiseSchedule& schedule, const SceneB
             if (batch.agent_mask[a] == 0) { w.setZero(); continue; }
             w.col(0).setZero();
             Eigen::Vector2f end;
-            if (sc.goal_inpaint && end_pinned(batch, a, c, sc.goal_reach, &end)) w.col(H - 1) = end;
+            if (sc.goal_inpaint && end_pinned(batch, a, c, sc.goal_reach, &end)) w.col(H - 1).template head<2>() = end;  // a fixed-size target: no vector loads past `end`
         }
     };
     impose();
