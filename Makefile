@@ -67,7 +67,10 @@ check-headers: deps
 	  echo "$$h compiles on its own"; done
 
 # Runs every test; the last line is "N passed, N failed" (doctest's test-case counts).
-test: deps $(BUILD)/run_tests
+# The test objects build in parallel on every core even when `make test` is called without -j.
+JOBS ?= $(shell nproc 2>/dev/null || echo 2)
+test: deps
+	@$(MAKE) --no-print-directory -j$(JOBS) $(BUILD)/run_tests
 	@set -o pipefail; $(BUILD)/run_tests $(TEST_ARGS) 2>&1 | tee $(BUILD)/test.log; status=$$?; \
 	 tests/summary.sh $(BUILD)/test.log; exit $$status
 
