@@ -2607,12 +2607,14 @@ struct DistanceField {
     }
     bool built_for(const Map& m) const { return nodes > 0 && m == map; }
     // Clearance at (x, y), world units; its gradient in *gx, *gy when given.
-    double value(double x, double y, double* gx = nullptr, double* gy = nullptr) const {
-        MADBP_ASSERT(nodes >= 2);
+    double value(double x, double y, double* gx = nullptr, double* gy = nullptr) const { return interpolate(d, x, y, gx, gy); }
+    // Bilinear interpolation of `values` given at this grid's nodes, and its gradient.
+    double interpolate(const std::vector<float>& values, double x, double y, double* gx = nullptr, double* gy = nullptr) const {
+        MADBP_ASSERT(nodes >= 2 && values.size() == (size_t)nodes * nodes);
         const double u = (x - lo) / cell, v = (y - lo) / cell;
         const int col = std::clamp((int)std::floor(u), 0, nodes - 2), row = std::clamp((int)std::floor(v), 0, nodes - 2);
         const double fx = u - col, fy = v - row;
-        const float* p = d.data() + (size_t)row * nodes + col;
+        const float* p = values.data() + (size_t)row * nodes + col;
         const double d00 = p[0], d10 = p[1], d01 = p[nodes], d11 = p[nodes + 1];
         if (gx) *gx = ((1 - fy) * (d10 - d00) + fy * (d11 - d01)) / cell;
         if (gy) *gy = ((1 - fx) * (d01 - d00) + fx * (d11 - d10)) / cell;
@@ -2620,26 +2622,114 @@ struct DistanceField {
     }
 };
 
+// What the window cost reads of the map: the clearance field, and the distance to each goal
+// around the obstacles (a "goal field": Dijkstra over the clearance field's nodes, 8-connected,
+// a step through a node closer than `radius` to the map costing kBlockedFactor times its
+// length), on the same nodes and read the same way. Goal fields are made by add_goals and kept
+// for the map (at most kMaxGoalFields; then the cache starts again).
+struct MapFields {
+    static constexpr int kMaxGoalFields = 256;
+    static constexpr double kBlockedFactor = 20;
+    struct GoalField {
+        double x = 0, y = 0;        // the goal, world units (as decoded from a SceneBatch)
+        std::vector<float> d;       // (nodes * nodes) distance to the goal
+    };
+    DistanceField clearance;
+    std::vector<GoalField> goals;
+
+    // (Re)builds the clearance field, and forgets the goal fields, when the map differs from the last one.
+    void set_map(const Map& map) {
+        if (clearance.built_for(map)) return;
+        clearance.build(map);
+        goals.clear();
+    }
+    const GoalField* find(double x, double y) const {
+        for (const GoalField& g : goals)
+            if (g.x == x && g.y == y) return &g;
+        return nullptr;
+    }
+    // Makes the goal fields of every active agent of `batch` that has none yet.
+    void add_goals(const SceneBatch& batch, const ModelConfig& c, double radius) {
+        MADBP_ASSERT(clearance.nodes >= 2);
+        for (int a = 0; a < batch.agents(); ++a) {
+            if (batch.agent_mask[a] == 0) continue;
+            const double gx = batch.pose(2, a) * (double)c.position_scale, gy = batch.pose(3, a) * (double)c.position_scale;
+            if (find(gx, gy)) continue;
+            if ((int)goals.size() >= kMaxGoalFields) goals.clear();
+            goals.push_back(GoalField{gx, gy, {}});
+            build_goal(goals.back(), radius);
+        }
+    }
+    // Distance to goal field g's goal at (x, y), and its gradient.
+    double goal_distance(const GoalField& g, double x, double y, double* gx = nullptr, double* gy = nullptr) const {
+        return clearance.interpolate(g.d, x, y, gx, gy);
+    }
+
+private:
+    std::vector<std::pair<float, int>> heap_;  // Dijkstra's queue, reused
+
+    void build_goal(GoalField& g, double radius) {
+        const DistanceField& f = clearance;
+        const int N = f.nodes;
+        g.d.assign((size_t)N * N, std::numeric_limits<float>::infinity());
+        // Seed the four nodes around the goal with their straight-line distances.
+        const int c0 = std::clamp((int)std::floor((g.x - f.lo) / f.cell), 0, N - 2), r0 = std::clamp((int)std::floor((g.y - f.lo) / f.cell), 0, N - 2);
+        heap_.clear();
+        auto cmp = [](const std::pair<float, int>& a, const std::pair<float, int>& b) { return a.first > b.first; };
+        for (int dr = 0; dr <= 1; ++dr)
+            for (int dc = 0; dc <= 1; ++dc) {
+                const int k = (r0 + dr) * N + c0 + dc;
+                g.d[k] = (float)std::hypot(f.lo + (c0 + dc) * f.cell - g.x, f.lo + (r0 + dr) * f.cell - g.y);
+                heap_.push_back({g.d[k], k});
+                std::push_heap(heap_.begin(), heap_.end(), cmp);
+            }
+        while (!heap_.empty()) {
+            std::pop_heap(heap_.begin(), heap_.end(), cmp);
+            const auto [dist, k] = heap_.back();
+            heap_.pop_back();
+            if (dist > g.d[k]) continue;
+            const int row = k / N, col = k % N;
+            for (int dr = -1; dr <= 1; ++dr)
+                for (int dc = -1; dc <= 1; ++dc) {
+                    const int r2 = row + dr, c2 = col + dc;
+                    if ((dr == 0 && dc == 0) || r2 < 0 || r2 >= N || c2 < 0 || c2 >= N) continue;
+                    const int k2 = r2 * N + c2;
+                    const double step = (dr && dc ? std::sqrt(2.0) : 1.0) * f.cell * (f.d[k2] < radius ? kBlockedFactor : 1.0);
+                    const float nd = (float)(dist + step);
+                    if (nd >= g.d[k2]) continue;
+                    g.d[k2] = nd;
+                    heap_.push_back({nd, k2});
+                    std::push_heap(heap_.begin(), heap_.end(), cmp);
+                }
+        }
+    }
+};
+
 // The cost of one scene's windows, world units. Waypoints of active agent a:
 // P_a(t) = p_a + window_scale * x_a(t), t = 1 .. H-1 (t = 0 is the current position p_a):
 //   agent_weight * sum over pairs a < b and t of max(0, 2 radius + agent_margin - |P_a(t) - P_b(t)|)^2
 // + map_weight   * sum over a and t of max(0, radius + map_margin - clearance(P_a(t)))^2
-// + goal_weight  * sum over a of sqrt(|P_a(H-1) - g_a|^2 + 0.01^2)     (g_a: a's goal)
-// Squared hinges, so the cost is smooth where they switch on. Every field >= 0.
+// + goal_weight  * sum over a of dist(P_a(H-1), g_a)     (g_a: a's goal)
+// where dist is the distance around the obstacles (MapFields' goal field) with `geodesic` and a
+// goal field made for g_a, else sqrt(|P - g|^2 + 0.01^2). Squared hinges, so the cost is smooth
+// where they switch on. Every weight and margin >= 0.
 struct WindowCost {
     float radius = 0.1f;         // robot radius, world units (WorldConfig::radius)
     float agent_margin = 0.05f;  // extra distance wanted between two robots' surfaces
     float map_margin = 0.03f;    // extra distance wanted between a robot's surface and the map
     float agent_weight = 100.f;
     float map_weight = 100.f;
-    float goal_weight = 1.f;
+    float goal_weight = 200.f;   // (the weights: tuned with guidance 0.004 on seeds 1000-1099, docs/experiments.md)
+    bool geodesic = true;        // the goal term measures around the obstacles (goal fields)
 };
 
 // The WindowCost of scene s's windows x (2, H*A) (normalised displacements, agent-major, as
-// sample_windows writes them) in `batch`; the map's clearance comes from `field`. With `grad`
+// sample_windows writes them) in `batch`; the map comes from `fields` (set_map; goal fields from
+// add_goals, else the goal term is straight-line). With `grad`
 // (2, H*A), ADDS d cost / d x to the columns of scene s's active agents, t >= 1.
 inline double window_cost(const SceneBatch& batch, int s, const Mat& x, const ModelConfig& c, const WindowCost& w,
-                          const DistanceField& field, Mat* grad = nullptr) {
+                          const MapFields& fields, Mat* grad = nullptr) {
+    const DistanceField& field = fields.clearance;
     const int n = batch.n, H = c.horizon;
     const double ps = c.position_scale, ws = c.window_scale;
     MADBP_ASSERT(s >= 0 && s < batch.B && x.cols() == (long)H * batch.agents());
@@ -2677,7 +2767,15 @@ inline double window_cost(const SceneBatch& batch, int s, const Mat& x, const Mo
             if (grad) add(a, t, -2.0 * w.map_weight * h * gx, -2.0 * w.map_weight * h * gy);
         }
         // The window's end far from the goal.
-        const double ex = P(a, H - 1, 0) - batch.pose(2, a) * ps, ey = P(a, H - 1, 1) - batch.pose(3, a) * ps;
+        const double goal_x = batch.pose(2, a) * ps, goal_y = batch.pose(3, a) * ps;
+        const MapFields::GoalField* gf = w.geodesic ? fields.find(goal_x, goal_y) : nullptr;
+        if (gf) {
+            double gx = 0, gy = 0;
+            cost += w.goal_weight * fields.goal_distance(*gf, P(a, H - 1, 0), P(a, H - 1, 1), &gx, &gy);
+            if (grad) add(a, H - 1, w.goal_weight * gx, w.goal_weight * gy);
+            continue;
+        }
+        const double ex = P(a, H - 1, 0) - goal_x, ey = P(a, H - 1, 1) - goal_y;
         const double q = std::sqrt(ex * ex + ey * ey + smooth2);
         cost += w.goal_weight * q;
         if (grad) add(a, H - 1, w.goal_weight * ex / q, w.goal_weight * ey / q);
@@ -2717,16 +2815,14 @@ inline void repeat_scenes(const SceneBatch& src, int k, SceneBatch& dst) {
 // Workspaces of conflict-aware sampling, reused across draws (no heap allocation once sizes are
 // steady), and after a draw what it chose: the cost of every candidate and the one kept.
 struct ConflictWorkspace {
-    DistanceField field;       // the map's clearance: set_map()
+    MapFields fields;          // the map's clearance and goal fields: set_map(); goal fields made while sampling
     SceneBatch batch;          // the scenes repeated k times (repeat_scenes); unused when k = 1
     Mat x, out, grad;          // (2, H*A*k): every candidate's windows after the draw in x
     std::vector<int> steps;
     std::vector<double> cost;  // (B*k) final WindowCost of each candidate, scene b's candidate j at b*k + j
     std::vector<int> best;     // (B) the candidate kept for each scene: the first of the lowest cost
-    // (Re)builds the distance field when the map differs from the last one.
-    void set_map(const Map& map) {
-        if (!field.built_for(map)) field.build(map);
-    }
+    // (Re)builds the map's fields when the map differs from the last one.
+    void set_map(const Map& map) { fields.set_map(map); }
 };
 
 // Sampling options (SPEC 6, paper Alg. 2).
@@ -2764,6 +2860,7 @@ void sample_conflict_aware(Denoiser& model, const NoiseSchedule& schedule, const
     const WindowCost& wc = sc.cost;
     for (float v : {wc.radius, wc.agent_margin, wc.map_margin, wc.agent_weight, wc.map_weight, wc.goal_weight})
         if (!(v >= 0) || !std::isfinite(v)) throw std::invalid_argument("sampler cost: every WindowCost field must be finite and >= 0");
+    if (wc.geodesic && wc.goal_weight > 0) cw.fields.add_goals(batch, c, wc.radius);  // new goals only
     if (k > 1) repeat_scenes(batch, k, cw.batch);
     const SceneBatch& rb = k > 1 ? cw.batch : batch;
     const int A = rb.agents(), Bk = rb.B;
@@ -2796,7 +2893,7 @@ void sample_conflict_aware(Denoiser& model, const NoiseSchedule& schedule, const
         for (long j = 0; j < x.size(); ++j) x0[j] = std::clamp(eps_mode ? (x.data()[j] - s1a * x0[j]) / sa : x0[j], -sc.clip, sc.clip);
         if (sc.guidance > 0) {
             cw.grad.setZero(2, x.cols());
-            for (int b = 0; b < Bk; ++b) window_cost(rb, b, cw.out, c, wc, cw.field, &cw.grad);
+            for (int b = 0; b < Bk; ++b) window_cost(rb, b, cw.out, c, wc, cw.fields, &cw.grad);
             for (long j = 0; j < x.size(); ++j) x0[j] = std::clamp(x0[j] - step_size * cw.grad.data()[j], -sc.clip, sc.clip);
         }
         for (long j = 0; j < x.size(); ++j) {
@@ -2809,7 +2906,7 @@ void sample_conflict_aware(Denoiser& model, const NoiseSchedule& schedule, const
     // Best of k: each scene keeps its first lowest-cost candidate.
     cw.cost.resize(Bk);
     cw.best.resize(B);
-    for (int b = 0; b < Bk; ++b) cw.cost[b] = window_cost(rb, b, x, c, wc, cw.field);
+    for (int b = 0; b < Bk; ++b) cw.cost[b] = window_cost(rb, b, x, c, wc, cw.fields);
     x_best.resize(2, (long)H * B * n);
     for (int b = 0; b < B; ++b) {
         int best = 0;
@@ -2832,7 +2929,7 @@ template <class Denoiser>
 void sample_windows(Denoiser& model, const NoiseSchedule& schedule, const SceneBatch& batch, const SamplerConfig& sc,
                     Rng& rng, Mat& x, Mat& out, std::vector<int>& step_buf, ConflictWorkspace* cw = nullptr) {
     if (sc.conflict_aware()) {
-        if (!cw || cw->field.nodes == 0)
+        if (!cw || cw->fields.clearance.nodes == 0)
             throw std::invalid_argument("sampler: guidance and candidates need a ConflictWorkspace holding the map's distance field (set_map)");
         detail::sample_conflict_aware(model, schedule, batch, sc, rng, x, *cw);
         return;

@@ -27,7 +27,7 @@ inline void read_cost_weights(const std::string& s, madbp::WindowCost& w) {
     float v[3];
     char tail = 0;
     if (std::sscanf(s.c_str(), "%f,%f,%f%c", &v[0], &v[1], &v[2], &tail) != 3)
-        throw std::invalid_argument("--cost-weights: expected three numbers AGENT,MAP,GOAL like 100,100,1, got '" + s + "'");
+        throw std::invalid_argument("--cost-weights: expected three numbers AGENT,MAP,GOAL like 100,100,200, got '" + s + "'");
     for (float x : v)
         if (!(x >= 0) || !std::isfinite(x)) throw std::invalid_argument("--cost-weights: weights must be finite and >= 0 (got '" + s + "')");
     w.agent_weight = v[0];
@@ -88,7 +88,7 @@ inline void register_nn_methods(std::vector<Method>& m) {
                  "                    conflict-aware sampling (issue 12; default off): --guidance W (each DDIM\n"
                  "                    step moves x0_hat's waypoints by -W * d cost / d waypoint), --candidates K\n"
                  "                    (best of K windows per scene), --cost-weights A,M,G (robot-robot, robot-map,\n"
-                 "                    goal; default 100,100,1), --cost-margin M (robot-robot, default 0.05)",
+                 "                    goal; default 100,100,200), --cost-margin M (robot-robot, default 0.05)",
                  [](Args& a, const MethodSetup& s) { return madbp_method(read_planner_options(a), s); }});
 }
 

@@ -1,0 +1,564 @@
+// Interaction scenes and conflict-aware sampling (issue 12): scene generators (madbp_sim.hpp
+// Section 4b), the scene mix of collect_demonstrations, the window cost and its gradient,
+// guided DDIM and best-of-k (madbp.hpp, SamplerConfig::guidance / candidates).
+#include <doctest/doctest.h>
+
+#include "madbp_train.hpp"
+
+#include "alloc_counter_api.hpp"
+
+using namespace madbp;
+
+namespace {
+
+ModelConfig tiny_config() {
+    ModelConfig c;
+    c.horizon = 8;
+    c.dim = 8;
+    c.heads = 2;
+    c.n_max = 6;
+    c.grid = 8;
+    c.local_grid = 8;
+    c.channels = {4, 6};
+    c.kernel = 3;
+    c.diffusion_steps = 20;
+    c.sample_steps = 5;
+    return c;
+}
+
+// A map with a disc, a box and the border walls, and B scenes of n slots on it (scene b has
+// counts[b] active agents) encoded as the planner does.
+Map test_map() {
+    Map m;
+    m.discs.push_back({Vec2{0.3, -0.2}, 0.15});
+    m.boxes.push_back({Vec2{-0.6, 0.3}, Vec2{-0.2, 0.4}});
+    return m;
+}
+SceneBatch scene_batch(const ModelConfig& c, const Map& map, int B, int n, const std::vector<int>& counts, Rng& rng) {
+    SceneBatch s;
+    s.resize(B, n, c, /*shared grid*/ true);
+    encode_map(s, 0, map, c);
+    for (int b = 0; b < B; ++b) {
+        s.count[b] = counts[b];
+        for (int i = 0; i < counts[b]; ++i) {
+            const Vec2 p{rng.uniform(-0.5, 0.5), rng.uniform(-0.5, 0.5)}, g{rng.uniform(-1, 1), rng.uniform(-1, 1)};
+            encode_agent(s, b * n + i, i, p, g, map, c);
+        }
+    }
+    return s;
+}
+
+// Today's sampler (before issue 12), copied verbatim (with 9d18a81's fixed-size pin target):
+// the reference that the default path of sample_windows must reproduce bit for bit.
+template <class Denoiser>
+void reference_sample_windows(Denoiser& model, const NoiseSchedule& schedule, const SceneBatch& batch, const SamplerConfig& sc,
+                              Rng& rng, Mat& x, Mat& out, std::vector<int>& step_buf) {
+    const ModelConfig& c = model.config;
+    const int A = batch.agents(), H = c.horizon, B = batch.B, S = sc.sample_steps;
+    if (S < 1 || S > schedule.K) throw std::invalid_argument("sample_steps: " + std::to_string(S) + " must be in [1, " + std::to_string(schedule.K) + "]");
+    model.encode_context(batch);
+    x.resize(2, (long)H * A);
+    for (long j = 0; j < x.size(); ++j) x.data()[j] = (float)rng.normal();
+    auto impose = [&]() {
+        for (int a = 0; a < A; ++a) {
+            auto w = x.middleCols((long)a * H, H);
+            if (batch.agent_mask[a] == 0) { w.setZero(); continue; }
+            w.col(0).setZero();
+            Eigen::Vector2f end;
+            if (sc.goal_inpaint && end_pinned(batch, a, c, sc.goal_reach, &end)) w.col(H - 1).template head<2>() = end;  // as 9d18a81: same values
+        }
+    };
+    impose();
+    step_buf.resize(B);
+    for (int s = S; s >= 1; --s) {
+        const int k = schedule.ddim_step(s, S), k_prev = schedule.ddim_step(s - 1, S);
+        std::fill(step_buf.begin(), step_buf.end(), k);
+        model.denoise(x, step_buf.data(), out);
+        const double ab = schedule.alpha_bar[k], ab_prev = schedule.alpha_bar[k_prev];
+        const float sa = (float)std::sqrt(ab), s1a = (float)std::sqrt(1 - ab);
+        const float sap = (float)std::sqrt(ab_prev), s1ap = (float)std::sqrt(1 - ab_prev);
+        const bool eps_mode = c.prediction == Prediction::Eps;
+        for (long j = 0; j < x.size(); ++j) {
+            const float xj = x.data()[j], oj = out.data()[j];
+            const float x0 = std::clamp(eps_mode ? (xj - s1a * oj) / sa : oj, -sc.clip, sc.clip);
+            const float e = (xj - sa * x0) / s1a;  // the noise consistent with the clipped x0
+            x.data()[j] = sap * x0 + s1ap * e;
+        }
+        impose();
+    }
+}
+
+// A denoiser that always predicts the same clean window x0 (as in test_model.cpp).
+struct OracleDenoiser {
+    ModelConfig config;
+    Mat x0;
+    void encode_context(const SceneBatch&) {}
+    void denoise(const Mat& x, const int*, Mat& out) {
+        // Every repeated scene (best-of-k) gets the same prediction.
+        out.resize(2, x.cols());
+        for (long j = 0; j < x.cols(); j += x0.cols()) out.middleCols(j, x0.cols()) = x0;
+    }
+};
+
+}  // namespace
+
+// ---------------------------------------------------------------------------------------------
+// Scene generators
+
+TEST_CASE("interaction scenes: every generator gives valid scenes on every map over many seeds") {
+    const double r = 0.1;
+    int scenes = 0;
+    for (const std::string& scenario : interaction_scenarios())
+        for (const char* map_name : {"empty", "obstacles", "barrier"})
+            for (int n = 1; n <= kMaxScenarioAgents; ++n)
+                for (uint64_t seed = 0; seed < 12; ++seed) {
+                    CAPTURE(scenario);
+                    CAPTURE(map_name);
+                    CAPTURE(n);
+                    CAPTURE(seed);
+                    World w = make_interaction_world(scenario, map_name, n, seed);
+                    ++scenes;
+                    REQUIRE(w.size() == n);
+                    const Map& map = w.map();
+                    // The guided expert's own planning grid and wavefront field (Section 12).
+                    ExpertParams ep;
+                    ClearanceGrid grid(map, ep.cell);
+                    for (int i = 0; i < n; ++i) {
+                        const Agent& a = w.agents()[i];
+                        CHECK(static_clearance(map, a.pos) >= r + 0.05);
+                        CHECK(static_clearance(map, a.goal) >= r + 0.05);
+                        CHECK(!inside_obstacle(map, a.pos));
+                        for (int j = 0; j < i; ++j) {
+                            CHECK(norm(a.pos - w.agents()[j].pos) >= 2 * r + 0.05);   // no overlapping starts
+                            CHECK(norm(a.goal - w.agents()[j].goal) >= 2 * r + 0.05); // nor goals
+                        }
+                        const std::vector<int> field = wavefront(grid, grid.index(a.goal), ep.inflate);
+                        CHECK(field[grid.index(a.pos)] >= 0);  // the goal is reachable
+                    }
+                    // The map is the named one, plus walls for gap (not barrier) and corridor.
+                    if (std::string(map_name) == "barrier" && scenario != "corridor") CHECK(map.boxes.size() == 2);
+                    if (scenario == "corridor") CHECK(map.boxes.size() >= 2);
+                }
+    CHECK(scenes == 6 * 3 * 4 * 12);
+}
+
+TEST_CASE("interaction scenes: the layouts are the interactions they are named for, drawn from the seed") {
+    auto starts_goals = [](const World& w) {
+        std::vector<Vec2> v;
+        for (const Agent& a : w.agents()) { v.push_back(a.pos); v.push_back(a.goal); }
+        return v;
+    };
+    for (const char* map_name : {"empty", "obstacles", "barrier"})
+        for (uint64_t seed = 0; seed < 5; ++seed) {
+            // swap, cross, gap, corridor: pairs exchange start and goal exactly.
+            for (const char* scenario : {"swap", "cross", "gap", "corridor"}) {
+                World w = make_interaction_world(scenario, map_name, 4, seed);
+                for (int i = 0; i < 4; ++i) {
+                    bool partner = false;
+                    for (int j = 0; j < 4; ++j)
+                        partner = partner || (j != i && w.agents()[i].goal == w.agents()[j].pos && w.agents()[j].goal == w.agents()[i].pos);
+                    CHECK(partner);
+                }
+            }
+            // cross: the paths of robots 0 (N->S) and 1 (E->W) are perpendicular.
+            World plus = make_interaction_world("cross", map_name, 2, seed);
+            const Vec2 d0 = plus.agents()[0].goal - plus.agents()[0].pos, d1 = plus.agents()[1].goal - plus.agents()[1].pos;
+            CHECK(std::fabs(dot(d0, d1)) < 1e-9 * norm(d0) * norm(d1) + 1e-9);
+            // parked: robots 2 and 3 sit on their goals, near the movers' line.
+            World parked = make_interaction_world("parked", map_name, 4, seed);
+            const Vec2 s0 = parked.agents()[0].pos, g0 = parked.agents()[0].goal, u = normalized(g0 - s0);
+            for (int i = 2; i < 4; ++i) {
+                const Agent& a = parked.agents()[i];
+                CHECK(a.pos == a.goal);
+                CHECK(std::fabs(cross(u, a.pos - s0)) <= 0.05 + 1e-9);
+                CHECK(dot(u, a.pos - s0) > 0);
+                CHECK(dot(u, a.pos - s0) < norm(g0 - s0));
+            }
+            // circle: every goal is its start's antipode about one centre.
+            World circle = make_interaction_world("circle", map_name, 4, seed);
+            const Vec2 centre = (circle.agents()[0].pos + circle.agents()[0].goal) * 0.5;
+            for (const Agent& a : circle.agents()) CHECK(norm((a.pos + a.goal) * 0.5 - centre) < 1e-9);
+            // gap on the barrier map: starts on both sides of the wall, each goal across it.
+            if (std::string(map_name) == "barrier") {
+                World gap = make_interaction_world("gap", map_name, 4, seed);
+                for (const Agent& a : gap.agents()) CHECK(a.pos.y * a.goal.y < 0);
+            }
+            // Drawn from the seed: the same seed gives the same scene, another seed another one.
+            for (const std::string& scenario : interaction_scenarios()) {
+                CHECK(starts_goals(make_interaction_world(scenario, map_name, 3, seed)) == starts_goals(make_interaction_world(scenario, map_name, 3, seed)));
+                CHECK(starts_goals(make_interaction_world(scenario, map_name, 3, seed)) != starts_goals(make_interaction_world(scenario, map_name, 3, seed + 1)));
+            }
+        }
+    CHECK_THROWS_AS(make_interaction_world("zigzag", "empty", 2, 0), std::invalid_argument);
+    CHECK_THROWS_AS(make_interaction_world("swap", "maze", 2, 0), std::invalid_argument);
+    CHECK_THROWS_AS(make_interaction_world("swap", "empty", 5, 0), std::invalid_argument);
+    CHECK_THROWS_AS(make_interaction_world("swap", "empty", 0, 0), std::invalid_argument);
+    // evaluate() builds the episode worlds from the scenario.
+    EvalConfig ec;
+    ec.map = "barrier";
+    ec.agents = 3;
+    ec.scenario = "corridor";
+    CHECK(starts_goals(make_episode_world(ec, 7)) == starts_goals(make_interaction_world("corridor", "barrier", 3, 7)));
+}
+
+TEST_CASE("interaction scenes: the guided expert solves them") {
+    // One scene of each kind at n = 4 on the barrier map (the hardest), with its step limit.
+    int solved = 0;
+    for (const std::string& scenario : interaction_scenarios()) {
+        World w = make_interaction_world(scenario, "barrier", 4, 3);
+        GuidedExpert expert(w.map());
+        EpisodeResult r = run_episode(w, expert);
+        CAPTURE(scenario);
+        CHECK(r.collisions() == 0);
+        solved += r.success;
+    }
+    CHECK(solved >= 5);
+}
+
+// ---------------------------------------------------------------------------------------------
+// The scene mix of collect_demonstrations
+
+TEST_CASE("collect: the default mix is today's random spawns; a mix draws the named scenes") {
+    CollectConfig c;
+    c.maps = {"obstacles", "barrier"};
+    c.n_train_max = 2;
+    c.episodes = 3;
+    c.seed = 11;
+    c.successful_only = false;
+    const DemoSet got = collect_demonstrations(c, expert_demonstrator(), "expert");
+    // Today's loop, by hand: cell = map index * n_train_max + (n - 1), seed + e + 100000 * cell.
+    REQUIRE(got.episodes.size() == 2 * 2 * 3);
+    size_t k = 0;
+    for (int m = 0; m < 2; ++m)
+        for (int n = 1; n <= 2; ++n)
+            for (int e = 0; e < 3; ++e, ++k) {
+                const uint64_t seed = c.seed + e + 100000ull * (m * 2 + (n - 1));
+                World w = make_random_world(c.maps[m], n, seed);
+                GuidedExpert expert(w.map());
+                const Demonstration d = record_demonstration(w, expert, c.maps[m]);
+                const Demonstration& g = got.episodes[k];
+                CHECK(g.map_name == c.maps[m]);
+                CHECK(g.map == d.map);
+                CHECK(g.steps == d.steps);
+                CHECK(g.goals == d.goals);
+                CHECK(g.pos == d.pos);
+                CHECK(g.act == d.act);
+            }
+    // A mix: a quarter swap, half corridor, the rest random; by position in the cell.
+    c.episodes = 4;
+    c.scenarios = {{"swap", 0.25}, {"corridor", 0.5}};
+    CHECK(collect_scenario(c, 2, 0) == "swap");
+    CHECK(collect_scenario(c, 2, 1) == "corridor");
+    CHECK(collect_scenario(c, 2, 2) == "corridor");
+    CHECK(collect_scenario(c, 2, 3) == "");
+    CHECK(collect_scenario(c, kMaxScenarioAgents + 1, 0) == "");  // larger teams: random spawns
+    c.maps = {"empty"};
+    c.n_train_max = 2;
+    const DemoSet mixed = collect_demonstrations(c, expert_demonstrator(), "expert");
+    REQUIRE(mixed.episodes.size() == 8);
+    CHECK(mixed.episodes[4].map_name == "empty/swap");
+    CHECK(mixed.episodes[5].map_name == "empty/corridor");
+    CHECK(mixed.episodes[7].map_name == "empty");
+    const World w = make_interaction_world("corridor", "empty", 2, c.seed + 1 + 100000ull * 1);
+    CHECK(mixed.episodes[5].map == w.map());
+    CHECK(mixed.episodes[5].pos[0] == w.agents()[0].pos);
+    CHECK(mixed.episodes[5].goals[1] == w.agents()[1].goal);
+    c.scenarios = {{"swap", 0.7}, {"circle", 0.7}};
+    CHECK_THROWS_AS(collect_demonstrations(c, expert_demonstrator(), "expert"), std::invalid_argument);
+    c.scenarios = {{"spiral", 0.1}};
+    CHECK_THROWS_AS(collect_demonstrations(c, expert_demonstrator(), "expert"), std::invalid_argument);
+}
+
+// ---------------------------------------------------------------------------------------------
+// The distance field and the window cost
+
+TEST_CASE("distance field: exact at the nodes, close between them, gradient = finite differences") {
+    const Map map = test_map();
+    DistanceField f(map);
+    CHECK(f.built_for(map));
+    Rng rng(3);
+    for (int k = 0; k < 200; ++k) {
+        const int row = (int)(rng.next_u64() % f.nodes), col = (int)(rng.next_u64() % f.nodes);
+        const double x = f.lo + col * f.cell, y = f.lo + row * f.cell;
+        CHECK(f.value(x, y) == doctest::Approx((float)static_clearance(map, {x, y})).epsilon(1e-6));
+    }
+    for (int k = 0; k < 500; ++k) {
+        const double x = rng.uniform(-1.3, 1.3), y = rng.uniform(-1.3, 1.3);
+        double gx, gy;
+        const double v = f.value(x, y, &gx, &gy);
+        CHECK(std::fabs(v - static_clearance(map, {x, y})) < f.cell);
+        // Inside one cell the interpolant is bilinear: central differences there are exact up to rounding.
+        const double h = 1e-5;
+        const double u = (x - f.lo) / f.cell, w = (y - f.lo) / f.cell;
+        if (std::fabs(u - std::round(u)) < 1e-3 || std::fabs(w - std::round(w)) < 1e-3) continue;
+        CHECK((f.value(x + h, y) - f.value(x - h, y)) / (2 * h) == doctest::Approx(gx).epsilon(1e-4).scale(1));
+        CHECK((f.value(x, y + h) - f.value(x, y - h)) / (2 * h) == doctest::Approx(gy).epsilon(1e-4).scale(1));
+    }
+}
+
+TEST_CASE("goal fields: the distance to a goal around the map") {
+    // Open world: the straight-line distance, up to the grid's 8-direction metric (<= 8% longer).
+    MapFields open;
+    open.set_map(Map{});
+    SceneBatch s;
+    const ModelConfig c = tiny_config();
+    s.resize(1, 1, c, true);
+    encode_agent(s, 0, 0, {0, 0}, {0.5, 0.25}, Map{}, c);
+    open.add_goals(s, c, 0.1);
+    REQUIRE(open.goals.size() == 1);
+    const MapFields::GoalField& g = open.goals[0];
+    for (Vec2 p : {Vec2{-0.7, -0.4}, Vec2{0.9, 0.9}, Vec2{0.45, 0.3}}) {
+        const double d = open.goal_distance(g, p.x, p.y), straight = norm(p - Vec2{g.x, g.y});
+        CHECK(d >= straight - 0.02);
+        CHECK(d <= 1.08 * straight + 0.02);
+    }
+    open.add_goals(s, c, 0.1);
+    CHECK(open.goals.size() == 1);  // made once per goal
+    // Barrier with its gap at x = 0.5: from below the wall at x = -0.8 to above it, the way is
+    // through the gap, and the gradient points away from the gap (uphill).
+    Map barrier;
+    barrier.boxes = {{{-1.2, -0.05}, {0.25, 0.05}}, {{0.75, -0.05}, {1.2, 0.05}}};
+    MapFields f;
+    f.set_map(barrier);
+    encode_agent(s, 0, 0, {-0.8, 0.3}, {-0.8, 0.3}, barrier, c);
+    f.add_goals(s, c, 0.1);
+    double gx, gy;
+    const double d = f.goal_distance(f.goals[0], -0.8, -0.3, &gx, &gy);
+    const double around = norm(Vec2{-0.8, -0.3} - Vec2{0.5, 0}) + norm(Vec2{0.5, 0} - Vec2{-0.8, 0.3});
+    CHECK(d > 0.9 * around);
+    CHECK(d < 1.1 * around);
+    CHECK(gx < 0);  // walking towards the gap (+x) brings the goal nearer
+    f.set_map(Map{});
+    CHECK(f.goals.empty());  // another map forgets them
+}
+
+TEST_CASE("window cost: the guidance gradient matches central finite differences of the cost") {
+    const ModelConfig c = tiny_config();
+    const Map map = test_map();
+    MapFields fields;
+    fields.set_map(map);
+    const DistanceField& field = fields.clearance;
+    Rng rng(17);
+    WindowCost w;
+    w.agent_margin = 0.3f;  // wide enough that most pairs are inside the hinge
+    w.map_margin = 0.3f;
+    for (int trial = 0; trial < 4; ++trial) {
+        SceneBatch s = scene_batch(c, map, 2, 4, {4, 3}, rng);
+        w.geodesic = trial % 2 == 0;  // the goal term around the obstacles, or straight
+        if (w.geodesic) fields.add_goals(s, c, w.radius);
+        // Windows that bunch the robots together near the obstacles, so every term is active.
+        Mat x(2, (long)c.horizon * s.agents());
+        for (long j = 0; j < x.size(); ++j) x.data()[j] = (float)rng.uniform(-0.6, 0.6);
+        for (int b = 0; b < 2; ++b) {
+            Mat grad = Mat::Zero(2, x.cols());
+            const double cost = window_cost(s, b, x, c, w, fields, &grad);
+            CHECK(cost > 0);
+            long checked = 0, nonzero = 0;
+            for (long col = 0; col < x.cols(); ++col)
+                for (int row = 0; row < 2; ++row) {
+                    const int a = (int)(col / c.horizon), t = (int)(col % c.horizon);
+                    if (a / s.n != b || s.agent_mask[a] == 0 || t == 0) {  // other scenes, padding, the pinned start
+                        CHECK(grad(row, col) == 0.0f);
+                        continue;
+                    }
+                    // Skip waypoints within a step of a field cell line (the bilinear gradient jumps there).
+                    const double px = s.pose(0, a) * c.position_scale + c.window_scale * x(0, col);
+                    const double py = s.pose(1, a) * c.position_scale + c.window_scale * x(1, col);
+                    const double u = (px - field.lo) / field.cell, v = (py - field.lo) / field.cell;
+                    if (std::fabs(u - std::round(u)) < 0.05 || std::fabs(v - std::round(v)) < 0.05) continue;
+                    const float keep = x(row, col);
+                    x(row, col) = keep + 1e-3f;
+                    const double up = window_cost(s, b, x, c, w, fields), hi = x(row, col);
+                    x(row, col) = keep - 1e-3f;
+                    const double down = window_cost(s, b, x, c, w, fields), lo = x(row, col);
+                    x(row, col) = keep;
+                    const double fd = (up - down) / (hi - lo);
+                    CHECK(grad(row, col) == doctest::Approx(fd).epsilon(2e-3).scale(1));
+                    checked++;
+                    nonzero += std::fabs(fd) > 1e-3;
+                }
+            CHECK(checked > 20);
+            CHECK(nonzero > 10);
+        }
+    }
+    // The cost of two robots that keep their distance and sit on their goals is the goal term's floor.
+    SceneBatch s;
+    s.resize(1, 2, c, true);
+    encode_map(s, 0, Map{}, c);
+    encode_agent(s, 0, 0, {-0.5, 0}, {-0.5, 0}, Map{}, c);
+    encode_agent(s, 1, 1, {0.5, 0}, {0.5, 0}, Map{}, c);
+    s.count[0] = 2;
+    MapFields open;
+    open.set_map(Map{});
+    const Mat still = Mat::Zero(2, (long)c.horizon * 2);
+    const double gw = WindowCost{}.goal_weight;
+    CHECK(window_cost(s, 0, still, c, WindowCost{}, open) == doctest::Approx(gw * 2 * 0.01));  // straight: no goal fields made
+    open.add_goals(s, c, 0.1);
+    CHECK(window_cost(s, 0, still, c, WindowCost{}, open) < gw * 2 * 0.02);  // around the map: within a cell of 0 at the goal
+}
+
+// ---------------------------------------------------------------------------------------------
+// The sampler
+
+TEST_CASE("sampler: with guidance off and k = 1 it is today's sampler, bit for bit") {
+    for (Prediction pred : {Prediction::X0, Prediction::Eps}) {
+        ModelConfig c = tiny_config();
+        c.prediction = pred;
+        MadbpModel model(c, 5);
+        model.set_training(false);
+        NoiseSchedule sched(c.diffusion_steps);
+        const Map map = test_map();
+        Rng pose_rng(9);
+        const SceneBatch s = scene_batch(c, map, 3, 4, {4, 2, 3}, pose_rng);
+        for (uint64_t seed : {1, 2, 3}) {
+            SamplerConfig sc;
+            sc.sample_steps = 4;
+            Rng r1(seed), r2(seed);
+            Mat x1, o1, x2, o2;
+            std::vector<int> b1, b2;
+            ConflictWorkspace cw;
+            sample_windows(model, sched, s, sc, r1, x1, o1, b1, &cw);
+            reference_sample_windows(model, sched, s, sc, r2, x2, o2, b2);
+            CHECK(x1 == x2);
+            CHECK(o1 == o2);
+            CHECK(r1.next_u64() == r2.next_u64());
+            CHECK(cw.fields.clearance.nodes == 0);  // the workspace is untouched
+        }
+    }
+    // The planner: a plan is the reference sampler's windows.
+    ModelConfig c = tiny_config();
+    DiffusionPlanner planner(MadbpModel(c, 4), 21);
+    World world = make_random_world("barrier", 3, 6);
+    const Plan p = planner.plan(world);
+    MadbpModel copy(c, 4);
+    copy.set_training(false);
+    NoiseSchedule sched(c.diffusion_steps);
+    SamplerConfig sc = planner.sampler;
+    Rng rng(21);
+    Mat x, o;
+    std::vector<int> b;
+    reference_sample_windows(copy, sched, planner.last_scene_batch(), sc, rng, x, o, b);
+    for (int i = 0; i < 3; ++i) {
+        auto at = [&](int t) {  // as plan_into writes waypoints (stride 1)
+            return world.agents()[i].pos + Vec2{x(0, (long)i * c.horizon + t) * (double)c.window_scale,
+                                                x(1, (long)i * c.horizon + t) * (double)c.window_scale};
+        };
+        for (int t = 1; t < c.horizon; ++t) CHECK(p.waypoints[i][t - 1] == at(t - 1) + (at(t) - at(t - 1)) * (1.0 / 1));
+    }
+}
+
+TEST_CASE("sampler: best-of-k keeps each scene's lowest-cost candidate") {
+    ModelConfig c = tiny_config();
+    MadbpModel model(c, 8);
+    model.set_training(false);
+    NoiseSchedule sched(c.diffusion_steps);
+    const Map map = test_map();
+    Rng pose_rng(2);
+    const SceneBatch s = scene_batch(c, map, 3, 3, {3, 2, 3}, pose_rng);
+    ConflictWorkspace cw;
+    cw.set_map(map);
+    for (auto [k, guidance] : {std::pair<int, float>{1, 0.01f}, {2, 0.01f}, {5, 0.0f}}) {
+        SamplerConfig sc;
+        sc.sample_steps = 4;
+        sc.candidates = k;
+        sc.guidance = guidance;
+        Rng rng(40 + k);
+        Mat x, out;
+        std::vector<int> buf;
+        sample_windows(model, sched, s, sc, rng, x, out, buf, &cw);
+        REQUIRE(x.cols() == (long)c.horizon * s.agents());
+        REQUIRE(cw.cost.size() == (size_t)3 * k);
+        REQUIRE(cw.x.cols() == (long)c.horizon * s.agents() * k);
+        const long W = (long)s.n * c.horizon;  // one scene's columns
+        for (int b = 0; b < 3; ++b) {
+            int best = 0;
+            for (int j = 1; j < k; ++j)
+                if (cw.cost[b * k + j] < cw.cost[b * k + best]) best = j;
+            CHECK(cw.best[b] == best);
+            CHECK(x.middleCols(b * W, W) == cw.x.middleCols((long)(b * k + best) * W, W));
+            // The kept windows' cost, recomputed on the scene itself, is the lowest of the candidates'.
+            const double kept = window_cost(s, b, x, c, sc.cost, cw.fields);
+            CHECK(kept == cw.cost[b * k + best]);
+            for (int j = 0; j < k; ++j) CHECK(kept <= cw.cost[b * k + j]);
+            if (k == 5) CHECK(cw.x.middleCols((long)(b * k) * W, W) != cw.x.middleCols((long)(b * k + 1) * W, W));  // distinct draws
+        }
+    }
+    SamplerConfig bad;
+    bad.candidates = kMaxCandidates + 1;
+    Rng rng(1);
+    Mat x, out;
+    std::vector<int> buf;
+    CHECK_THROWS_AS(sample_windows(model, sched, s, bad, rng, x, out, buf, &cw), std::invalid_argument);
+    bad.candidates = 2;
+    CHECK_THROWS_AS(sample_windows(model, sched, s, bad, rng, x, out, buf), std::invalid_argument);  // no workspace
+    bad.guidance = -1;
+    bad.candidates = 1;
+    CHECK_THROWS_AS(sample_windows(model, sched, s, bad, rng, x, out, buf, &cw), std::invalid_argument);
+}
+
+TEST_CASE("sampler: guidance moves windows that collide apart") {
+    // An oracle whose clean windows drive two robots head-on through each other.
+    ModelConfig c = tiny_config();
+    const int H = c.horizon;
+    NoiseSchedule sched(c.diffusion_steps);
+    SceneBatch s;
+    s.resize(1, 2, c, true);
+    encode_map(s, 0, Map{}, c);
+    encode_agent(s, 0, 0, {-0.4, 0.01}, {0.8, 0.0}, Map{}, c);
+    encode_agent(s, 1, 1, {0.4, -0.01}, {-0.8, 0.0}, Map{}, c);
+    s.count[0] = 2;
+    OracleDenoiser oracle{c, Mat::Zero(2, (long)H * 2)};
+    for (int t = 0; t < H; ++t) {  // 0.1 world units a step each: they meet at t = 4
+        oracle.x0(0, t) = (float)(0.1 * t / c.window_scale);
+        oracle.x0(0, H + t) = -oracle.x0(0, t);
+    }
+    ConflictWorkspace cw;
+    cw.set_map(Map{});
+    SamplerConfig sc;
+    sc.sample_steps = 5;
+    sc.goal_inpaint = false;
+    sc.cost.goal_weight = 0;  // the robot-robot term alone
+    auto closest = [&](const Mat& x) {
+        double d = 1e9;
+        for (int t = 1; t < H; ++t) {
+            const double dx = -0.8 + c.window_scale * (x(0, t) - x(0, H + t));  // robot 0 minus robot 1
+            const double dy = 0.02 + c.window_scale * (x(1, t) - x(1, H + t));
+            d = std::min(d, std::sqrt(dx * dx + dy * dy));
+        }
+        return d;
+    };
+    Rng r1(5), r2(5);
+    Mat plain, guided, out;
+    std::vector<int> buf;
+    sc.candidates = 2;  // the conflict-aware path, unguided
+    sample_windows(oracle, sched, s, sc, r1, plain, out, buf, &cw);
+    const double cost_plain = window_cost(s, 0, plain, c, sc.cost, cw.fields);
+    sc.guidance = 2e-3f;
+    sample_windows(oracle, sched, s, sc, r2, guided, out, buf, &cw);
+    const double cost_guided = window_cost(s, 0, guided, c, sc.cost, cw.fields);
+    CHECK(closest(plain) < 0.1);   // the oracle's windows pass through each other
+    CHECK(cost_guided < cost_plain);
+    CHECK(closest(guided) > closest(plain) + 0.05);
+}
+
+TEST_CASE("planner: conflict-aware plans allocate nothing in the steady state") {
+    set_num_threads(1);
+    ModelConfig c;  // the default configuration
+    DiffusionPlanner planner(MadbpModel(c, 1), 3);
+    planner.sampler.guidance = 0.01f;
+    planner.sampler.candidates = 3;
+    World w = make_random_world("barrier", 4, 4);
+    Plan plan;
+    for (int i = 0; i < 3; ++i) planner.plan_into(w, plan);  // warm-up: workspaces and the distance field
+    g_allocs = 0;
+    g_count_allocs = true;
+    for (int i = 0; i < 3; ++i) planner.plan_into(w, plan);
+    g_count_allocs = false;
+#if MADBP_TEST_COUNT_ALLOCS
+    CHECK(g_allocs.load() == 0);
+#endif
+    CHECK(plan.ids.size() == 4);
+    CHECK(planner.last_candidates().cost.size() == 3);
+    CHECK(planner.last_candidates().fields.clearance.built_for(w.map()));
+    CHECK(planner.last_candidates().fields.goals.size() == 4);
+}
