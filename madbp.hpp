@@ -1872,7 +1872,7 @@ struct SceneBatch {
 // both call these, so what the model sees in training is what it sees when planning.
 
 // Scene `scene`'s map as the model's occupancy grid.
-inline void encode_map(SceneBatch& batch, int scene, const Map& map, const ModelConfig& c) {
+inline void encode_map(SceneBatch& batch, int scene, const WorldMap& map, const ModelConfig& c) {
     const Grid g = occupancy_grid(map, c.grid);
     const long G2 = (long)c.grid * c.grid;
     for (long j = 0; j < G2; ++j) batch.grid(0, scene * G2 + j) = g.cells[j];
@@ -1880,7 +1880,7 @@ inline void encode_map(SceneBatch& batch, int scene, const Map& map, const Model
 
 // Agent column a: active, with PE_agent slot `slot`, its normalised position and goal, and its
 // own crop of the map (when the model has one).
-inline void encode_agent(SceneBatch& batch, int a, int slot, Vec2 pos, Vec2 goal, const Map& map, const ModelConfig& c) {
+inline void encode_agent(SceneBatch& batch, int a, int slot, Vec2 pos, Vec2 goal, const WorldMap& map, const ModelConfig& c) {
     batch.agent_mask[a] = 1;
     batch.slot[a] = slot;
     batch.pose.col(a) << (float)(pos.x / c.position_scale), (float)(pos.y / c.position_scale), (float)(goal.x / c.position_scale),
@@ -2588,12 +2588,12 @@ struct DistanceField {
     static constexpr int kMaxNodes = 512;
     int nodes = 0;              // per side; 0 = not built
     double lo = 0, cell = 0;    // first node's coordinate on both axes; node spacing (world units)
-    Map map;                    // the map it was built from
+    WorldMap map;                    // the map it was built from
     std::vector<float> d;       // (nodes * nodes) clearance at the nodes
 
     DistanceField() = default;
-    explicit DistanceField(const Map& m, double cell_wanted = 0.02, double pad = 0.2) { build(m, cell_wanted, pad); }
-    void build(const Map& m, double cell_wanted = 0.02, double pad = 0.2) {
+    explicit DistanceField(const WorldMap& m, double cell_wanted = 0.02, double pad = 0.2) { build(m, cell_wanted, pad); }
+    void build(const WorldMap& m, double cell_wanted = 0.02, double pad = 0.2) {
         if (!(cell_wanted > 0) || !(pad >= 0) || !std::isfinite(cell_wanted + pad))
             throw std::invalid_argument("DistanceField: needs cell > 0 and pad >= 0");
         const double span = 2 * (m.half_size + pad);
@@ -2605,7 +2605,7 @@ struct DistanceField {
         for (int row = 0; row < nodes; ++row)
             for (int col = 0; col < nodes; ++col) d[(size_t)row * nodes + col] = (float)static_clearance(m, {lo + col * cell, lo + row * cell});
     }
-    bool built_for(const Map& m) const { return nodes > 0 && m == map; }
+    bool built_for(const WorldMap& m) const { return nodes > 0 && m == map; }
     // Clearance at (x, y), world units; its gradient in *gx, *gy when given.
     double value(double x, double y, double* gx = nullptr, double* gy = nullptr) const { return interpolate(d, x, y, gx, gy); }
     // Bilinear interpolation of `values` given at this grid's nodes, and its gradient.
@@ -2638,7 +2638,7 @@ struct MapFields {
     std::vector<GoalField> goals;
 
     // (Re)builds the clearance field, and forgets the goal fields, when the map differs from the last one.
-    void set_map(const Map& map) {
+    void set_map(const WorldMap& map) {
         if (clearance.built_for(map)) return;
         clearance.build(map);
         goals.clear();
@@ -2822,7 +2822,7 @@ struct ConflictWorkspace {
     std::vector<double> cost;  // (B*k) final WindowCost of each candidate, scene b's candidate j at b*k + j
     std::vector<int> best;     // (B) the candidate kept for each scene: the first of the lowest cost
     // (Re)builds the map's fields when the map differs from the last one.
-    void set_map(const Map& map) { fields.set_map(map); }
+    void set_map(const WorldMap& map) { fields.set_map(map); }
 };
 
 // Sampling options (SPEC 6, paper Alg. 2).
@@ -3064,14 +3064,14 @@ private:
     NoiseSchedule schedule_;
     Rng rng_;
     SceneBatch batch_;
-    Map grid_map_;
+    WorldMap grid_map_;
     bool grid_valid_ = false;
     Mat x_, eps_;
     std::vector<int> steps_, members_;
     ConflictWorkspace conflict_;  // guidance and best-of-k (SamplerConfig::guidance, candidates)
 
     // Rasterizes the map only when it changed since the last plan.
-    void update_grid(const Map& map) {
+    void update_grid(const WorldMap& map) {
         if (grid_valid_ && map == grid_map_) return;
         encode_map(batch_, 0, map, model_.config);
         grid_map_ = map;

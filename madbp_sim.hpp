@@ -18,7 +18,8 @@
 //   MADBP_ASSERT(cond)   programmer-error check; default: assert(cond).
 //
 // Changelog
-//   0.2  ProgressFn instead of printing; Policy::decision_ms; Map operator==; local_crop here.
+//   0.2  ProgressFn instead of printing; Policy::decision_ms; Map is now WorldMap (no clash with
+//        Eigen::Map), with operator==; local_crop here.
 //   0.1  world, maps, controllers.
 
 #ifndef MADBP_SIM_HPP
@@ -129,7 +130,7 @@ inline std::string number_text(double v) {
 // ============================ WORLD AND CONTROLLERS BELOW ===================================
 //
 // Contents (section numbers below; SPEC sections in brackets)
-//   1 geometry: Vec2, Disc, Box, Map, for_each_surface, static_clearance
+//   1 geometry: Vec2, Disc, Box, WorldMap, for_each_surface, static_clearance
 //   2 maps: make_map("empty" | "obstacles" | "barrier")                          [2]
 //   3 the world: WorldConfig, Agent, Metrics, World (add/remove agents, step)    [2]
 //   4 spawning: spawn_agents, make_random_world, WorldBatch                      [2]
@@ -196,15 +197,15 @@ struct Box { Vec2 lo, hi; };
 
 // The static part of a problem: the square world [-half_size, half_size]^2 with walls on its
 // border, plus obstacles. Plain data, so users can build their own maps (SPEC 2).
-struct Map {
+struct WorldMap {
     double half_size = 1.2;
     std::vector<Disc> discs;
     std::vector<Box> boxes;
 };
 inline bool operator==(const Disc& a, const Disc& b) { return a.c == b.c && a.r == b.r; }
 inline bool operator==(const Box& a, const Box& b) { return a.lo == b.lo && a.hi == b.hi; }
-inline bool operator==(const Map& a, const Map& b) { return a.half_size == b.half_size && a.discs == b.discs && a.boxes == b.boxes; }
-inline bool operator!=(const Map& a, const Map& b) { return !(a == b); }
+inline bool operator==(const WorldMap& a, const WorldMap& b) { return a.half_size == b.half_size && a.discs == b.discs && a.boxes == b.boxes; }
+inline bool operator!=(const WorldMap& a, const WorldMap& b) { return !(a == b); }
 
 // Closest point of `b` to `p` (p itself when inside).
 inline Vec2 closest_point(const Box& b, Vec2 p) { return {std::clamp(p.x, b.lo.x, b.hi.x), std::clamp(p.y, b.lo.y, b.hi.y)}; }
@@ -232,7 +233,7 @@ inline double box_distance(const Box& b, Vec2 p, Vec2* away = nullptr) {
 // inside an obstacle); `away` is the unit direction from the surface toward `p`. Contacts,
 // collision counts, clearances and the safety filter all read the map through this.
 template <class Fn>
-inline void for_each_surface(const Map& map, Vec2 p, Fn&& fn) {
+inline void for_each_surface(const WorldMap& map, Vec2 p, Fn&& fn) {
     double h = map.half_size;
     fn(h - p.x, Vec2{-1, 0});
     fn(p.x + h, Vec2{1, 0});
@@ -252,7 +253,7 @@ inline void for_each_surface(const Map& map, Vec2 p, Fn&& fn) {
 
 // Distance from `p` to the nearest static surface of `map` (obstacle or border wall), and the
 // unit direction pointing away from it. Negative when `p` is inside an obstacle.
-inline double static_clearance(const Map& map, Vec2 p, Vec2* away = nullptr) {
+inline double static_clearance(const WorldMap& map, Vec2 p, Vec2* away = nullptr) {
     double best = std::numeric_limits<double>::infinity();
     Vec2 dir;
     for_each_surface(map, p, [&](double d, Vec2 a) { if (d < best) { best = d; dir = a; } });
@@ -261,7 +262,7 @@ inline double static_clearance(const Map& map, Vec2 p, Vec2* away = nullptr) {
 }
 
 // True when `p` lies inside an obstacle (not the border walls), or outside the world.
-inline bool inside_obstacle(const Map& map, Vec2 p) {
+inline bool inside_obstacle(const WorldMap& map, Vec2 p) {
     if (std::fabs(p.x) > map.half_size || std::fabs(p.y) > map.half_size) return true;
     for (const Disc& o : map.discs) if (norm(p - o.c) < o.r) return true;
     for (const Box& b : map.boxes)
@@ -278,13 +279,13 @@ inline bool inside_obstacle(const Map& map, Vec2 p) {
 // (5 discs at 1.2, 20 at 2.4) so density stays the same; the barrier always spans the
 // world with one gap of width 0.5. Throws std::invalid_argument on an unknown name, a
 // half_size above kMaxHalfSize, or more than kMaxObstacles discs (obstacles beyond ~34).
-inline Map make_map(const std::string& name, Rng& rng, double half_size = 1.2) {
+inline WorldMap make_map(const std::string& name, Rng& rng, double half_size = 1.2) {
     if (!(half_size > 0.5) || !std::isfinite(half_size))
         throw std::invalid_argument("half_size: must be a finite number > 0.5 (got " + std::to_string(half_size) + ")");
     if (half_size > kMaxHalfSize)
         throw std::invalid_argument("half_size: " + number_text(half_size) + " exceeds the limit kMaxHalfSize = " + number_text(kMaxHalfSize));
     double scale = half_size / 1.2;
-    Map map;
+    WorldMap map;
     map.half_size = half_size;
     if (name == "empty") return map;
     if (name == "obstacles") {
@@ -355,7 +356,7 @@ struct Metrics {
 // joining, and `step` takes one action per present agent in that order.
 class World {
 public:
-    explicit World(Map map = Map{}, WorldConfig cfg = WorldConfig{}) : map_(std::move(map)), cfg_(cfg) {
+    explicit World(WorldMap map = WorldMap{}, WorldConfig cfg = WorldConfig{}) : map_(std::move(map)), cfg_(cfg) {
         require_finite(map_.half_size, "map.half_size");
         if (!(map_.half_size > 0)) throw std::invalid_argument("map.half_size: must be > 0");
         if (map_.half_size > kMaxHalfSize)
@@ -423,7 +424,7 @@ public:
         for (size_t i = 0; i < agents_.size(); ++i) if (agents_[i].id == id) return (int)i;
         return -1;
     }
-    const Map& map() const { return map_; }
+    const WorldMap& map() const { return map_; }
     const WorldConfig& config() const { return cfg_; }
     const Metrics& metrics() const { return metrics_; }
     int t() const { return metrics_.steps; }
@@ -516,7 +517,7 @@ private:
     // Contacts further than d_min + 25 k are skipped: their force is below 100*k*e^-25 ~ 1e-12.
     static constexpr double kContactCutoff = 25.0;
 
-    Map map_;
+    WorldMap map_;
     WorldConfig cfg_;
     std::vector<Agent> agents_;
     Metrics metrics_;
@@ -572,7 +573,7 @@ struct SpawnConfig {
 };
 inline void spawn_agents(World& world, int n, Rng& rng, const SpawnConfig& sc = SpawnConfig{}) {
     if (n < 0) throw std::invalid_argument("agents: must be >= 0 (got " + std::to_string(n) + ")");
-    const Map& map = world.map();
+    const WorldMap& map = world.map();
     double lim = map.half_size / 1.2, min_static = world.config().radius + sc.clearance;
     std::vector<Vec2> placed;
     for (const Agent& a : world.agents()) { placed.push_back(a.pos); placed.push_back(a.goal); }
@@ -675,7 +676,7 @@ struct ReachGrid {
     double half = 1.2, cell = 0.036, min_clear = 0.13;
     std::vector<uint8_t> free;
     std::vector<int> queue, seen;
-    ReachGrid(const Map& map, double cell_wanted = 0.036, double min_clear_ = 0.13) : half(map.half_size), min_clear(min_clear_) {
+    ReachGrid(const WorldMap& map, double cell_wanted = 0.036, double min_clear_ = 0.13) : half(map.half_size), min_clear(min_clear_) {
         n = (int)std::min(std::max(2.0, std::round(2 * half / cell_wanted)), (double)kExpertMaxGridSide);
         cell = 2 * half / n;
         free.resize((size_t)n * n);
@@ -727,7 +728,7 @@ inline Box turned_box(Vec2 lo, Vec2 hi, int q, Vec2 c) {
 // Adds walls to a map: drops the discs closer than `keep_off` (surface to surface) to any of
 // them; false when a wall pokes out of the world or (with check_boxes) comes closer than
 // `keep_off` to an existing box.
-inline bool add_walls(Map& map, const std::vector<Box>& walls, double keep_off, bool check_boxes = true) {
+inline bool add_walls(WorldMap& map, const std::vector<Box>& walls, double keep_off, bool check_boxes = true) {
     for (const Box& w : walls) {
         if (w.lo.x < -map.half_size || w.hi.x > map.half_size || w.lo.y < -map.half_size || w.hi.y > map.half_size) return false;
         if (check_boxes)
@@ -744,7 +745,7 @@ inline bool add_walls(Map& map, const std::vector<Box>& walls, double keep_off, 
     return true;
 }
 // The checks of Section 4b on one drawn layout.
-inline bool interaction_scene_valid(const Map& map, const std::vector<Vec2>& starts, const std::vector<Vec2>& goals, double radius) {
+inline bool interaction_scene_valid(const WorldMap& map, const std::vector<Vec2>& starts, const std::vector<Vec2>& goals, double radius) {
     const double min_sep = 0.25, min_clear = radius + 0.06;
     for (size_t i = 0; i < starts.size(); ++i) {
         if (!std::isfinite(starts[i].x + starts[i].y + goals[i].x + goals[i].y)) return false;
@@ -772,12 +773,12 @@ inline World make_interaction_world(const std::string& scenario, const std::stri
         throw std::invalid_argument("scenario " + scenario + ": agents must be in [1, " + std::to_string(kMaxScenarioAgents) + "] (got " +
                                     std::to_string(n) + ")");
     Rng rng(seed);
-    const Map base = make_map(map_name, rng, half_size);
+    const WorldMap base = make_map(map_name, rng, half_size);
     const double L = half_size / 1.2, r = cfg.radius, t = 0.05;  // t: half a wall's thickness
     const double pi = std::acos(-1.0);
     auto dir = [](double a) { return Vec2{std::cos(a), std::sin(a)}; };
     for (int tries = 0; tries < kMaxScenarioTries; ++tries) {
-        Map map = base;
+        WorldMap map = base;
         std::vector<Vec2> s, g;
         const Vec2 c{rng.uniform(-0.5, 0.5) * L, rng.uniform(-0.5, 0.5) * L};
         if (scenario == "swap") {
@@ -933,7 +934,7 @@ inline void rasterize_disc(Grid& g, int ch, Vec2 c, double r) {
             if (norm(g.centre(row, col) - c) < r) g.cells[((size_t)ch * g.size + row) * g.size + col] = 1;
 }
 }  // namespace detail
-inline Grid occupancy_grid(const Map& map, int size = 32) {
+inline Grid occupancy_grid(const WorldMap& map, int size = 32) {
     if (size < 2 || size > 4096) throw std::invalid_argument("grid size: must be in [2, 4096] (got " + std::to_string(size) + ")");
     Grid g;
     g.size = size;
@@ -962,7 +963,7 @@ inline Grid occupancy_grid(const World& world, int size = 32, bool agents = fals
 // (world units), row-major from the lowest y, written to out (Gl * Gl). A cell is 1 when an
 // obstacle or wall surface is within half a cell of its centre (so thin walls are never
 // missed) or it lies beyond the walls.
-inline void local_crop(const Map& map, Vec2 p, int Gl, double extent, float* out) {
+inline void local_crop(const WorldMap& map, Vec2 p, int Gl, double extent, float* out) {
     const double w = 2 * extent / Gl;
     for (int row = 0; row < Gl; ++row)
         for (int col = 0; col < Gl; ++col) {
@@ -977,7 +978,7 @@ inline void local_crop(const Map& map, Vec2 p, int Gl, double extent, float* out
 
 // A whole problem given by hand: a map plus agents' starts and goals.
 struct Scene {
-    Map map;
+    WorldMap map;
     std::vector<Vec2> starts, goals;
 };
 
@@ -1061,7 +1062,7 @@ inline Scene parse_scene(const std::string& text, const std::string& source = "s
     if (scene.starts.empty()) fail(line_no, "no 'agent' line");
     // Validation needs the whole map, so it runs after parsing; errors name the agent's line.
     double lim = scene.map.half_size - radius;
-    Map obstacles_only = scene.map;
+    WorldMap obstacles_only = scene.map;
     obstacles_only.half_size = 1e9;  // walls are checked separately below
     for (size_t i = 0; i < scene.starts.size(); ++i) {
         for (int which = 0; which < 2; ++which) {
@@ -1474,7 +1475,7 @@ struct Frame {
     std::vector<Vec2> collisions;  // points where a collision was counted at this step
 };
 struct EpisodeLog {
-    Map map;
+    WorldMap map;
     double radius = 0.1, goal_tolerance = 0.1, dt = 0.1;
     std::vector<Frame> frames;
     void record(const World& w) {
@@ -1609,7 +1610,7 @@ struct ClearanceGrid {
     double cell = 0.04, half = 1.2, stretch = 1;
     std::vector<float> clear;
     ClearanceGrid() = default;
-    ClearanceGrid(const Map& map, double cell_wanted, int max_side = kExpertMaxGridSide) : half(map.half_size) {
+    ClearanceGrid(const WorldMap& map, double cell_wanted, int max_side = kExpertMaxGridSide) : half(map.half_size) {
         if (!(cell_wanted > 0) || !std::isfinite(cell_wanted) || max_side < 2)
             throw std::invalid_argument("ClearanceGrid: needs cell > 0 and max_side >= 2 (got " + std::to_string(cell_wanted) + ", " +
                                         std::to_string(max_side) + ")");
@@ -1688,7 +1689,7 @@ struct ExpertParams {
 
 class GuidedExpert : public Policy {
 public:
-    explicit GuidedExpert(const Map& map, ExpertParams p = ExpertParams{}) : prm_(p), grid_(map, p.cell) {
+    explicit GuidedExpert(const WorldMap& map, ExpertParams p = ExpertParams{}) : prm_(p), grid_(map, p.cell) {
         if (prm_.replan_every < 1) throw std::invalid_argument("ExpertParams.replan_every: must be >= 1");
         if (prm_.extra_horizon < 0 || prm_.extra_horizon > kExpertMaxHorizon)
             throw std::invalid_argument("ExpertParams.extra_horizon: must be in [0, kExpertMaxHorizon = " + std::to_string(kExpertMaxHorizon) + "]");

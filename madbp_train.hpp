@@ -62,7 +62,7 @@ namespace madbp {
 // after t steps. Arrays are frame-major: pos[t * agents + i].
 struct Demonstration {
     std::string map_name;
-    Map map;
+    WorldMap map;
     int agents = 0, steps = 0;  // frames = steps + 1
     bool success = false;
     std::vector<Vec2> goals;            // (agents)
@@ -471,7 +471,7 @@ inline double temporal_loss(const Mat& x0_hat, const std::vector<float>& mask, i
 // clearance is the distance to the nearest obstacle or wall surface of the scene's map.
 // d_min = 2 * radius.
 inline double collision_loss(const Mat& x0_hat, const Mat& origin, const std::vector<float>& mask, int B, int n, int H,
-                             const std::vector<Map>& maps, float scale, float radius, const float* scene_weight,
+                             const std::vector<WorldMap>& maps, float scale, float radius, const float* scene_weight,
                              float weight, Mat& grad) {
     double total = 0;
     const float d_min = 2 * radius;
@@ -553,13 +553,13 @@ struct TrainBatch {
     SceneBatch scene;
     Mat x0, horizon_goal, origin;
     std::vector<float> pinned;
-    std::vector<Map> maps;  // per scene, in world units, mirrored like the scene
+    std::vector<WorldMap> maps;  // per scene, in world units, mirrored like the scene
 };
 
 namespace detail {
 // The map mirrored in x (fx = -1) and/or y (fy = -1): training augmentation.
-inline Map mirrored(const Map& m, double fx, double fy) {
-    Map out = m;
+inline WorldMap mirrored(const WorldMap& m, double fx, double fy) {
+    WorldMap out = m;
     for (Disc& o : out.discs) o.c = Vec2{o.c.x * fx, o.c.y * fy};
     for (Box& b : out.boxes) {
         Vec2 a{b.lo.x * fx, b.lo.y * fy}, c{b.hi.x * fx, b.hi.y * fy};
@@ -1205,7 +1205,7 @@ inline double ray_border(Vec2 p, Vec2 d, double h) {
 // Distance from agent index `i` of `world` along the unit direction `dir` to the first surface
 // (other agents, static discs, boxes, border walls), capped at `range`.
 inline double lidar_distance(const World& world, int i, Vec2 dir, double range = kLidarRange) {
-    const Map& map = world.map();
+    const WorldMap& map = world.map();
     const Vec2 p = world.agents()[i].pos;
     double t = std::min(range, detail::ray_border(p, dir, map.half_size));
     for (const Disc& o : map.discs) t = std::min(t, detail::ray_disc(p, dir, o.c, o.r));

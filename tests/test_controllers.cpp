@@ -234,7 +234,7 @@ TEST_CASE("PlanFollower: replans every m steps and on joins and leaves; bad plan
 }
 
 TEST_CASE("wavefront: steps around a wall, unreachable behind a closed one") {
-    Map m;
+    WorldMap m;
     m.boxes.push_back({{-1.2, -0.05}, {0.6, 0.05}});  // gap from 0.6 to 1.2 on the right
     ClearanceGrid g(m, 0.1);
     REQUIRE(g.n == 24);
@@ -244,7 +244,7 @@ TEST_CASE("wavefront: steps around a wall, unreachable behind a closed one") {
     CHECK(below > 25);
     CHECK(steps[g.index({-0.8, 0.6})] == 0);
     CHECK(steps[g.index({-0.8, 0.0})] == -1);  // inside the wall
-    Map closed;
+    WorldMap closed;
     closed.boxes.push_back({{-1.2, -0.05}, {1.2, 0.05}});
     ClearanceGrid gc(closed, 0.1);
     CHECK(wavefront(gc, gc.index({0, 0.6}), 0.13)[gc.index({0, -0.6})] == -1);

@@ -28,13 +28,13 @@ ModelConfig tiny_config() {
 
 // A map with a disc, a box and the border walls, and B scenes of n slots on it (scene b has
 // counts[b] active agents) encoded as the planner does.
-Map test_map() {
-    Map m;
+WorldMap test_map() {
+    WorldMap m;
     m.discs.push_back({Vec2{0.3, -0.2}, 0.15});
     m.boxes.push_back({Vec2{-0.6, 0.3}, Vec2{-0.2, 0.4}});
     return m;
 }
-SceneBatch scene_batch(const ModelConfig& c, const Map& map, int B, int n, const std::vector<int>& counts, Rng& rng) {
+SceneBatch scene_batch(const ModelConfig& c, const WorldMap& map, int B, int n, const std::vector<int>& counts, Rng& rng) {
     SceneBatch s;
     s.resize(B, n, c, /*shared grid*/ true);
     encode_map(s, 0, map, c);
@@ -119,7 +119,7 @@ TEST_CASE("interaction scenes: every generator gives valid scenes on every map o
                     World w = make_interaction_world(scenario, map_name, n, seed);
                     ++scenes;
                     REQUIRE(w.size() == n);
-                    const Map& map = w.map();
+                    const WorldMap& map = w.map();
                     // The guided expert's own planning grid and wavefront field (Section 12).
                     ExpertParams ep;
                     ClearanceGrid grid(map, ep.cell);
@@ -273,7 +273,7 @@ TEST_CASE("collect: the default mix is today's random spawns; a mix draws the na
 // The distance field and the window cost
 
 TEST_CASE("distance field: exact at the nodes, close between them, gradient = finite differences") {
-    const Map map = test_map();
+    const WorldMap map = test_map();
     DistanceField f(map);
     CHECK(f.built_for(map));
     Rng rng(3);
@@ -299,11 +299,11 @@ TEST_CASE("distance field: exact at the nodes, close between them, gradient = fi
 TEST_CASE("goal fields: the distance to a goal around the map") {
     // Open world: the straight-line distance, up to the grid's 8-direction metric (<= 8% longer).
     MapFields open;
-    open.set_map(Map{});
+    open.set_map(WorldMap{});
     SceneBatch s;
     const ModelConfig c = tiny_config();
     s.resize(1, 1, c, true);
-    encode_agent(s, 0, 0, {0, 0}, {0.5, 0.25}, Map{}, c);
+    encode_agent(s, 0, 0, {0, 0}, {0.5, 0.25}, WorldMap{}, c);
     open.add_goals(s, c, 0.1);
     REQUIRE(open.goals.size() == 1);
     const MapFields::GoalField& g = open.goals[0];
@@ -316,7 +316,7 @@ TEST_CASE("goal fields: the distance to a goal around the map") {
     CHECK(open.goals.size() == 1);  // made once per goal
     // Barrier with its gap at x = 0.5: from below the wall at x = -0.8 to above it, the way is
     // through the gap, and the gradient points away from the gap (uphill).
-    Map barrier;
+    WorldMap barrier;
     barrier.boxes = {{{-1.2, -0.05}, {0.25, 0.05}}, {{0.75, -0.05}, {1.2, 0.05}}};
     MapFields f;
     f.set_map(barrier);
@@ -328,13 +328,13 @@ TEST_CASE("goal fields: the distance to a goal around the map") {
     CHECK(d > 0.9 * around);
     CHECK(d < 1.1 * around);
     CHECK(gx < 0);  // walking towards the gap (+x) brings the goal nearer
-    f.set_map(Map{});
+    f.set_map(WorldMap{});
     CHECK(f.goals.empty());  // another map forgets them
 }
 
 TEST_CASE("window cost: the guidance gradient matches central finite differences of the cost") {
     const ModelConfig c = tiny_config();
-    const Map map = test_map();
+    const WorldMap map = test_map();
     MapFields fields;
     fields.set_map(map);
     const DistanceField& field = fields.clearance;
@@ -384,12 +384,12 @@ TEST_CASE("window cost: the guidance gradient matches central finite differences
     // The cost of two robots that keep their distance and sit on their goals is the goal term's floor.
     SceneBatch s;
     s.resize(1, 2, c, true);
-    encode_map(s, 0, Map{}, c);
-    encode_agent(s, 0, 0, {-0.5, 0}, {-0.5, 0}, Map{}, c);
-    encode_agent(s, 1, 1, {0.5, 0}, {0.5, 0}, Map{}, c);
+    encode_map(s, 0, WorldMap{}, c);
+    encode_agent(s, 0, 0, {-0.5, 0}, {-0.5, 0}, WorldMap{}, c);
+    encode_agent(s, 1, 1, {0.5, 0}, {0.5, 0}, WorldMap{}, c);
     s.count[0] = 2;
     MapFields open;
-    open.set_map(Map{});
+    open.set_map(WorldMap{});
     const Mat still = Mat::Zero(2, (long)c.horizon * 2);
     const double gw = WindowCost{}.goal_weight;
     CHECK(window_cost(s, 0, still, c, WindowCost{}, open) == doctest::Approx(gw * 2 * 0.01));  // straight: no goal fields made
@@ -407,7 +407,7 @@ TEST_CASE("sampler: with guidance off and k = 1 it is today's sampler, bit for b
         MadbpModel model(c, 5);
         model.set_training(false);
         NoiseSchedule sched(c.diffusion_steps);
-        const Map map = test_map();
+        const WorldMap map = test_map();
         Rng pose_rng(9);
         const SceneBatch s = scene_batch(c, map, 3, 4, {4, 2, 3}, pose_rng);
         for (uint64_t seed : {1, 2, 3}) {
@@ -452,7 +452,7 @@ TEST_CASE("sampler: best-of-k keeps each scene's lowest-cost candidate") {
     MadbpModel model(c, 8);
     model.set_training(false);
     NoiseSchedule sched(c.diffusion_steps);
-    const Map map = test_map();
+    const WorldMap map = test_map();
     Rng pose_rng(2);
     const SceneBatch s = scene_batch(c, map, 3, 3, {3, 2, 3}, pose_rng);
     ConflictWorkspace cw;
@@ -503,9 +503,9 @@ TEST_CASE("sampler: guidance moves windows that collide apart") {
     NoiseSchedule sched(c.diffusion_steps);
     SceneBatch s;
     s.resize(1, 2, c, true);
-    encode_map(s, 0, Map{}, c);
-    encode_agent(s, 0, 0, {-0.4, 0.01}, {0.8, 0.0}, Map{}, c);
-    encode_agent(s, 1, 1, {0.4, -0.01}, {-0.8, 0.0}, Map{}, c);
+    encode_map(s, 0, WorldMap{}, c);
+    encode_agent(s, 0, 0, {-0.4, 0.01}, {0.8, 0.0}, WorldMap{}, c);
+    encode_agent(s, 1, 1, {0.4, -0.01}, {-0.8, 0.0}, WorldMap{}, c);
     s.count[0] = 2;
     OracleDenoiser oracle{c, Mat::Zero(2, (long)H * 2)};
     for (int t = 0; t < H; ++t) {  // 0.1 world units a step each: they meet at t = 4
@@ -513,7 +513,7 @@ TEST_CASE("sampler: guidance moves windows that collide apart") {
         oracle.x0(0, H + t) = -oracle.x0(0, t);
     }
     ConflictWorkspace cw;
-    cw.set_map(Map{});
+    cw.set_map(WorldMap{});
     SamplerConfig sc;
     sc.sample_steps = 5;
     sc.goal_inpaint = false;

@@ -414,7 +414,7 @@ TEST_CASE("limits: world 1e9 in a scene is refused; grids and pictures stay boun
     CHECK_THROWS_WITH_AS(parse_scene("madbp-scene 1\nworld 1e9\nagent 0 0 1 1\n", "w.scene"),
                          doctest::Contains("w.scene:2: world half-size 1e9 exceeds the limit kMaxHalfSize"), std::invalid_argument);
     CHECK_NOTHROW(parse_scene("madbp-scene 1\nworld 100\nagent 0 0 1 1\n"));
-    Map huge;
+    WorldMap huge;
     huge.half_size = 1e9;
     CHECK_THROWS_WITH_AS(World{huge}, doctest::Contains("kMaxHalfSize"), std::invalid_argument);
     Rng rng(0);

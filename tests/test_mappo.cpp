@@ -161,7 +161,7 @@ TEST_CASE("mappo: actor and critic backward through the full PPO loss match cent
 TEST_CASE("mappo: observations and lidar on a hand-placed scene") {
     // Agent A at (0.3, 0.95): a disc obstacle 0.2 to its right (surface at 0.1), the top wall
     // 0.25 above, agent B 0.25 to its left (surface at 0.15). B sees a box 0.25 below it.
-    Map map;
+    WorldMap map;
     map.discs.push_back({{0.5, 0.95}, 0.1});
     map.boxes.push_back({{-1.2, 0.6}, {0.1, 0.7}});
     World world(map);

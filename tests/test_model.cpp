@@ -27,7 +27,7 @@ ModelConfig tiny_config(Processor p = Processor::AAP) {
 SceneBatch random_batch(const ModelConfig& c, int B, int n, const std::vector<int>& counts, Rng& rng) {
     SceneBatch s;
     s.resize(B, n, c);
-    Map map;
+    WorldMap map;
     map.discs.push_back({Vec2{0.3, -0.2}, 0.3});
     Grid g = occupancy_grid(map, c.grid);
     for (int b = 0; b < B; ++b) {
@@ -340,7 +340,7 @@ TEST_CASE("planner: with a waypoint stride the steps between sampled waypoints a
 
 TEST_CASE("planner: a team that changes size on the same map plans like a fresh planner") {
     ModelConfig c = tiny_config();
-    Map map;
+    WorldMap map;
     map.discs.push_back({Vec2{0.0, 0.0}, 0.5});  // large enough to show on the tiny 8x8 grid
     World w(map);
     w.add_agent({-0.9, -0.9}, {0.9, 0.9});
@@ -374,7 +374,7 @@ TEST_CASE("checkpoint: oversized or malformed numbers in the metadata are clear 
 
 TEST_CASE("planner: neighbourhood planning gives each agent the context of itself and its nearest agents") {
     ModelConfig c = tiny_config();
-    Map map;
+    WorldMap map;
     map.discs.push_back({Vec2{0.0, 0.0}, 0.5});
     World w(map);
     const Vec2 starts[5] = {{-0.9, -0.9}, {-0.6, -0.9}, {0.9, 0.9}, {0.9, 0.6}, {-0.9, 0.9}};

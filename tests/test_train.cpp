@@ -115,7 +115,7 @@ TEST_CASE("collision loss: two overlapping agents and an agent in a wall") {
         x.col(H + t) << 0.1f, 0.0f;
     }
     std::vector<float> mask = {1, 1}, weight = {1};
-    std::vector<Map> maps(1);
+    std::vector<WorldMap> maps(1);
     const Mat origin = Mat::Zero(2, n);
     const double L = collision_loss(x, origin, mask, B, n, H, maps, 1.0f, 0.1f, weight.data(), 1.0f, grad);
     // Per step both orders of the pair: 2 * (0.2 - 0.1).

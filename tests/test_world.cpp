@@ -58,7 +58,7 @@ TEST_CASE("physics: contact force direction and magnitude") {
     // Wall at x = 1.2 pushes -x; a box pushes out through its nearest face.
     CHECK(w.static_contact_force({1.2 - 0.095, 0}).x == doctest::Approx(-0.1 * std::log1p(std::exp(5.0))));
     CHECK(w.static_contact_force({1.2 - 0.095, 0}).y == 0.0);
-    Map m;
+    WorldMap m;
     m.boxes.push_back({{-0.5, -0.05}, {0.5, 0.05}});
     World wb(m);
     Vec2 f = wb.static_contact_force({0.2, 0.05 + 0.099});  // 0.001 into the contact margin
@@ -112,10 +112,10 @@ TEST_CASE("bad states: NaN, inf and agents outside the world raise clear errors"
     CHECK_THROWS_AS(w.set_state(id, {0, 0}, {NAN, 0}), std::invalid_argument);
     CHECK_THROWS_AS(w.set_state(id, {1.21, 0}, {0, 0}), std::invalid_argument);
     w.set_state(id, {1.15, 0}, {0, 0});  // pressed into the wall: a state the physics can reach
-    Map bad;
+    WorldMap bad;
     bad.discs.push_back({{0, 0}, -1});
     CHECK_THROWS_AS(World{bad}, std::invalid_argument);
-    Map nan_map;
+    WorldMap nan_map;
     nan_map.half_size = NAN;
     CHECK_THROWS_AS(World{nan_map}, std::invalid_argument);
 }
@@ -125,14 +125,14 @@ TEST_CASE("maps: the three generators and unknown names") {
     CHECK(make_map("empty", rng).discs.empty());
     for (int seed = 0; seed < 200; ++seed) {
         Rng r(seed);
-        Map m = make_map("obstacles", r);
+        WorldMap m = make_map("obstacles", r);
         REQUIRE(m.discs.size() == 5);
         for (size_t i = 0; i < m.discs.size(); ++i) {
             CHECK(std::fabs(m.discs[i].c.x) <= 0.8);
             CHECK(std::fabs(m.discs[i].c.y) <= 0.8);
             for (size_t j = 0; j < i; ++j) CHECK(norm(m.discs[i].c - m.discs[j].c) - 0.2 >= 0.15);
         }
-        Map b = make_map("barrier", r);
+        WorldMap b = make_map("barrier", r);
         REQUIRE(b.boxes.size() == 2);
         double gap_lo = b.boxes[0].hi.x, gap_hi = b.boxes[1].lo.x;
         CHECK(gap_hi - gap_lo == doctest::Approx(0.5));
@@ -195,7 +195,7 @@ TEST_CASE("metrics: goal, success at the same step, and the step limit") {
     CHECK(w.done());
     WorldConfig cfg;
     cfg.max_steps = 5;
-    World w2(Map{}, cfg);
+    World w2(WorldMap{}, cfg);
     w2.add_agent({0, 0}, {0.9, 0});
     for (int k = 0; k < 5; ++k) { CHECK_FALSE(w2.done()); w2.step({{0, 0}}); }
     CHECK(w2.done());
@@ -203,7 +203,7 @@ TEST_CASE("metrics: goal, success at the same step, and the step limit") {
 }
 
 TEST_CASE("metrics: collisions per step and pair, agent-agent and agent-static separately") {
-    Map m;
+    WorldMap m;
     m.discs.push_back({{0.5, 0.5}, 0.1});
     World w(m);
     w.add_agent({0, 0}, {0.9, 0.9});
@@ -268,7 +268,7 @@ TEST_CASE("WorldBatch: stepping together equals stepping alone, any thread count
 }
 
 TEST_CASE("grid: rasterization of a known map, channels and layout") {
-    Map m;
+    WorldMap m;
     m.boxes.push_back({{-0.3, -0.3}, {0.3, 0.3}});
     m.discs.push_back({{0.75, -0.75}, 0.1});
     // G = 8 over [-1.2, 1.2]: cell width 0.3, centres at -1.05, -0.75, ..., 1.05.
@@ -292,7 +292,7 @@ TEST_CASE("grid: rasterization of a known map, channels and layout") {
     CHECK(g3.at(1, 7, 7) == 0.f);
     // The barrier at the default 32 x 32: the two rows around y = 0 are blocked except the gap.
     Rng rng(0);
-    Map b = make_map("barrier", rng);
+    WorldMap b = make_map("barrier", rng);
     Grid gb = occupancy_grid(b);
     double gap_c = (b.boxes[0].hi.x + b.boxes[1].lo.x) / 2;
     for (int row : {15, 16}) {
