@@ -4,27 +4,13 @@
 #include <doctest/doctest.h>
 
 #include "madbp_train.hpp"
+#include "tiny_model.hpp"
 
 #include "alloc_counter_api.hpp"
 
 using namespace madbp;
 
 namespace {
-
-ModelConfig tiny_config() {
-    ModelConfig c;
-    c.horizon = 8;
-    c.dim = 8;
-    c.heads = 2;
-    c.n_max = 6;
-    c.grid = 8;
-    c.local_grid = 8;
-    c.channels = {4, 6};
-    c.kernel = 3;
-    c.diffusion_steps = 20;
-    c.sample_steps = 5;
-    return c;
-}
 
 // A map with a disc, a box and the border walls, and B scenes of n slots on it (scene b has
 // counts[b] active agents) encoded as the planner does.

@@ -2,26 +2,12 @@
 #include <doctest/doctest.h>
 
 #include "madbp_train.hpp"
+#include "tiny_model.hpp"
 
 using namespace madbp;
 
 namespace {
 
-ModelConfig tiny_config(Processor p = Processor::AAP) {
-    ModelConfig c;
-    c.horizon = 8;
-    c.dim = 8;
-    c.heads = 2;
-    c.n_max = 6;
-    c.grid = 8;
-    c.local_grid = 8;
-    c.channels = {4, 6};
-    c.kernel = 3;
-    c.diffusion_steps = 20;
-    c.sample_steps = 5;
-    c.processor = p;
-    return c;
-}
 
 // B scenes, n slots; agent (b, i) is active when i < counts[b]. Random poses, one disc map.
 SceneBatch random_batch(const ModelConfig& c, int B, int n, const std::vector<int>& counts, Rng& rng) {
