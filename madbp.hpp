@@ -2828,7 +2828,7 @@ struct ConflictWorkspace {
 // Sampling options (SPEC 6, paper Alg. 2).
 struct SamplerConfig {
     int sample_steps = 10;       // S, DDIM steps (eta = 0), in [1, K]
-    float clip = 1.5f;           // x0_hat clipped to [-clip, clip] (normalised displacements; Diffuser's clip_denoised)
+    float x0_clip = 1.5f;        // x0_hat clipped to [-x0_clip, x0_clip] (normalised displacements; Diffuser's clip_denoised)
     bool goal_inpaint = true;    // pin the window's last waypoint to the goal when it is within reach
     float goal_reach = 0.55f;    // "within reach": distance to goal in world units at most this (see default_goal_reach)
     // Conflict-aware sampling (issue 12), off by default: with guidance = 0 and candidates = 1
@@ -2890,11 +2890,11 @@ void sample_conflict_aware(Denoiser& model, const NoiseSchedule& schedule, const
         const float sap = (float)std::sqrt(ab_prev), s1ap = (float)std::sqrt(1 - ab_prev);
         const bool eps_mode = c.prediction == Prediction::Eps;
         float* x0 = cw.out.data();  // x0_hat replaces the network's output in place
-        for (long j = 0; j < x.size(); ++j) x0[j] = std::clamp(eps_mode ? (x.data()[j] - s1a * x0[j]) / sa : x0[j], -sc.clip, sc.clip);
+        for (long j = 0; j < x.size(); ++j) x0[j] = std::clamp(eps_mode ? (x.data()[j] - s1a * x0[j]) / sa : x0[j], -sc.x0_clip, sc.x0_clip);
         if (sc.guidance > 0) {
             cw.grad.setZero(2, x.cols());
             for (int b = 0; b < Bk; ++b) window_cost(rb, b, cw.out, c, wc, cw.fields, &cw.grad);
-            for (long j = 0; j < x.size(); ++j) x0[j] = std::clamp(x0[j] - step_size * cw.grad.data()[j], -sc.clip, sc.clip);
+            for (long j = 0; j < x.size(); ++j) x0[j] = std::clamp(x0[j] - step_size * cw.grad.data()[j], -sc.x0_clip, sc.x0_clip);
         }
         for (long j = 0; j < x.size(); ++j) {
             const float xj = x.data()[j];
@@ -2961,7 +2961,7 @@ void sample_windows(Denoiser& model, const NoiseSchedule& schedule, const SceneB
         const bool eps_mode = c.prediction == Prediction::Eps;
         for (long j = 0; j < x.size(); ++j) {
             const float xj = x.data()[j], oj = out.data()[j];
-            const float x0 = std::clamp(eps_mode ? (xj - s1a * oj) / sa : oj, -sc.clip, sc.clip);
+            const float x0 = std::clamp(eps_mode ? (xj - s1a * oj) / sa : oj, -sc.x0_clip, sc.x0_clip);
             const float e = (xj - sa * x0) / s1a;  // the noise consistent with the clipped x0
             x.data()[j] = sap * x0 + s1ap * e;
         }

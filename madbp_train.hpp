@@ -881,9 +881,12 @@ public:
 
     // Restores the run from <out>.train and returns its step: every identity field must equal
     // this run's (the error names the first that differs), then the weights, state, Adam, EMA,
-    // RNG streams and the curve rows up to that step come back.
+    // RNG streams and the curve rows up to that step come back. The file's metadata stays in
+    // `resumed` for a trainer's own fields.
+    std::map<std::string, std::string> resumed;
     long resume() {
         const SafeTensors st = load_safetensors(state_path());
+        resumed = st.metadata;
         for (auto& kv : identity_) {
             auto it = st.metadata.find(kv.first);
             if (it == st.metadata.end() || it->second != kv.second)
@@ -1014,8 +1017,7 @@ inline TrainReport train(const DemoSet& demos, MadbpModel& model, const TrainCon
     LossTerms smooth;  // exponentially smoothed training losses (in the state file: the curve continues exactly)
     if (tc.resume) {
         step = state.resume();
-        const SafeTensors st = load_safetensors(state.state_path());
-        if (std::sscanf(st.meta("train.smooth").c_str(), "%lf %lf %lf %lf %lf", &smooth.total, &smooth.noise, &smooth.boundary,
+        if (std::sscanf(state.resumed["train.smooth"].c_str(), "%lf %lf %lf %lf %lf", &smooth.total, &smooth.noise, &smooth.boundary,
                         &smooth.temporal, &smooth.collision) != 5)
             throw std::runtime_error(state.state_path() + ": __metadata__['train.smooth'] is not five numbers");
     }
@@ -1609,7 +1611,7 @@ inline MappoReport train_mappo(const MappoConfig& c, MappoNet* result = nullptr)
                       "approx_kl", "clip_fraction"});
     if (c.resume) {
         iteration = state.resume();
-        seconds_before = std::atof(load_safetensors(state.state_path()).meta("mappo.seconds").c_str());
+        seconds_before = std::atof(state.resumed["mappo.seconds"].c_str());
     }
     const int n = c.agents, W = c.worlds, O = kMappoObs;
     WorldConfig wc;
@@ -2406,9 +2408,8 @@ inline MadiffReport train_madiff(const DemoSet& demos, MadiffConfig mc, const Ma
     MadiffLoss smooth;  // exponentially smoothed (in the state file: the curve continues exactly)
     if (tc.resume) {
         step = state.resume();
-        const SafeTensors st = load_safetensors(state.state_path());
-        seconds_before = std::atof(st.meta("madiff.seconds").c_str());
-        if (std::sscanf(st.meta("madiff.smooth").c_str(), "%lf %lf %lf", &smooth.total, &smooth.diffusion, &smooth.inverse) != 3)
+        seconds_before = std::atof(state.resumed["madiff.seconds"].c_str());
+        if (std::sscanf(state.resumed["madiff.smooth"].c_str(), "%lf %lf %lf", &smooth.total, &smooth.diffusion, &smooth.inverse) != 3)
             throw std::runtime_error(state.state_path() + ": __metadata__['madiff.smooth'] is not three numbers");
     }
     if (ema.shadow.size() != model.params->size()) ema.shadow = model.params->value;

@@ -16,3 +16,13 @@
 
 extern std::atomic<bool> g_count_allocs;  // count while true
 extern std::atomic<long> g_allocs;        // allocations counted so far
+
+// Heap allocations made while fn() runs.
+template <class F>
+long count_allocs(F&& fn) {
+    g_allocs = 0;
+    g_count_allocs = true;
+    fn();
+    g_count_allocs = false;
+    return g_allocs.load();
+}

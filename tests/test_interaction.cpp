@@ -66,7 +66,7 @@ void reference_sample_windows(Denoiser& model, const NoiseSchedule& schedule, co
         const bool eps_mode = c.prediction == Prediction::Eps;
         for (long j = 0; j < x.size(); ++j) {
             const float xj = x.data()[j], oj = out.data()[j];
-            const float x0 = std::clamp(eps_mode ? (xj - s1a * oj) / sa : oj, -sc.clip, sc.clip);
+            const float x0 = std::clamp(eps_mode ? (xj - s1a * oj) / sa : oj, -sc.x0_clip, sc.x0_clip);
             const float e = (xj - sa * x0) / s1a;  // the noise consistent with the clipped x0
             x.data()[j] = sap * x0 + s1ap * e;
         }
@@ -536,12 +536,9 @@ TEST_CASE("planner: conflict-aware plans allocate nothing in the steady state") 
     World w = make_random_world("barrier", 4, 4);
     Plan plan;
     for (int i = 0; i < 3; ++i) planner.plan_into(w, plan);  // warm-up: workspaces and the distance field
-    g_allocs = 0;
-    g_count_allocs = true;
-    for (int i = 0; i < 3; ++i) planner.plan_into(w, plan);
-    g_count_allocs = false;
+    const long allocs = count_allocs([&] { for (int i = 0; i < 3; ++i) planner.plan_into(w, plan); });
 #if MADBP_TEST_COUNT_ALLOCS
-    CHECK(g_allocs.load() == 0);
+    CHECK(allocs == 0);
 #endif
     CHECK(plan.ids.size() == 4);
     CHECK(planner.last_candidates().cost.size() == 3);

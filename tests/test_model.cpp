@@ -299,12 +299,9 @@ TEST_CASE("planner: a steady-state plan allocates nothing") {
     World w = make_random_world("barrier", 6, 4);
     Plan plan;
     for (int i = 0; i < 3; ++i) planner.plan_into(w, plan);  // warm-up: workspaces take their sizes
-    g_allocs = 0;
-    g_count_allocs = true;
-    for (int i = 0; i < 3; ++i) planner.plan_into(w, plan);
-    g_count_allocs = false;
+    const long allocs = count_allocs([&] { for (int i = 0; i < 3; ++i) planner.plan_into(w, plan); });
 #if MADBP_TEST_COUNT_ALLOCS
-    CHECK(g_allocs.load() == 0);
+    CHECK(allocs == 0);
 #endif
     CHECK(plan.ids.size() == 6);
 }

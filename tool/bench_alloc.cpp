@@ -33,11 +33,7 @@ int main(int argc, char** argv) {
             madbp::World world = madbp::make_random_world("empty", (int)n, 0, n > 16 ? 2.4 : 1.2);
             madbp::Plan plan;
             for (int i = 0; i < 3; ++i) planner.plan_into(world, plan);  // warm-up: workspaces take their sizes
-            g_allocs = 0;
-            g_count_allocs = true;
-            for (int i = 0; i < plans; ++i) planner.plan_into(world, plan);
-            g_count_allocs = false;
-            const double per_plan = (double)g_allocs.load() / plans;
+            const double per_plan = (double)count_allocs([&] { for (int i = 0; i < plans; ++i) planner.plan_into(world, plan); }) / plans;
             if (json) std::printf("%s\n", Json().add("bench", "alloc").add("agents", n).add("allocs_per_plan", per_plan).line().c_str());
             else std::printf("%4ld %12.1f\n", n, per_plan);
         }
