@@ -1709,6 +1709,11 @@ namespace madbp {
 enum class Processor { AAP, LE };      // axial attention processor | linear encoder (ablation)
 enum class WindowMode { MW, CT };      // moving window | complete trajectory (ablation)
 enum class Prediction { Eps, X0 };     // the network predicts the noise (paper) | the clean window
+// Where a scene's coordinates start (issue 13). World: at the world's centre, the grid spanning
+// the whole world (the paper's; a larger world is out of distribution). Local: at the centre of
+// the scene's robots (scene_origin), the grid a crop of +-position_scale around it, so a scene
+// looks the same anywhere in a world of any size.
+enum class SceneFrame { World, Local };
 
 // Limits of ModelConfig::validate beyond each field's range (docs/limits.md): the U-Net kernel,
 // and the temporal attention's scores per agent (heads x horizon^2 floats of workspace).
@@ -1733,6 +1738,10 @@ struct ModelConfig {
     float position_scale = 1.2f;       // world units per normalised pose unit (the training world's half-size)
     float window_scale = 0.6f;         // world units per normalised displacement (~ top speed x window time)
     Prediction prediction = Prediction::X0;  // measured better than the paper's eps here (docs/experiments.md)
+    SceneFrame frame = SceneFrame::World;        // metadata "frame" (absent in 0.1 checkpoints: world)
+    float subgoal_distance = 0;        // > 0: a goal farther than this, or out of view, is given as a point this far
+                                       // along the route around the map (route_goal; world units)
+    int n_train_max = 0;               // the largest team in training (metadata train.n_train_max; 0 = unknown)
 
     int levels() const { return (int)channels.size(); }
     int image_tokens() const { return (grid / 8) * (grid / 8); }
@@ -1759,22 +1768,27 @@ struct ModelConfig {
         if (sample_steps < 1 || sample_steps > diffusion_steps) bad("sample_steps", "must be in [1, diffusion_steps]");
         if (!(position_scale > 0) || !std::isfinite(position_scale)) bad("position_scale", "must be positive");
         if (!(window_scale > 0) || !std::isfinite(window_scale)) bad("window_scale", "must be positive");
+        if (!(subgoal_distance >= 0) || !std::isfinite(subgoal_distance)) bad("subgoal_distance", "must be a number >= 0");
+        if (n_train_max < 0 || n_train_max > n_max) bad("n_train_max", "must be in [0, n_max]");
     }
     std::map<std::string, std::string> to_metadata() const {
         std::string ch;
         for (size_t i = 0; i < channels.size(); ++i) ch += (i ? "," : "") + std::to_string(channels[i]);
         char scale[32];
         std::snprintf(scale, sizeof scale, "%.9g", position_scale);
-        char wscale[32], lext[32];
+        char wscale[32], lext[32], sub[32];
         std::snprintf(wscale, sizeof wscale, "%.9g", window_scale);
         std::snprintf(lext, sizeof lext, "%.9g", local_extent);
-        return {{"model", "madbp"}, {"horizon", std::to_string(horizon)}, {"waypoint_stride", std::to_string(waypoint_stride)}, {"dim", std::to_string(dim)},
+        std::snprintf(sub, sizeof sub, "%.9g", subgoal_distance);
+        std::map<std::string, std::string> md = {{"model", "madbp"}, {"horizon", std::to_string(horizon)}, {"waypoint_stride", std::to_string(waypoint_stride)}, {"dim", std::to_string(dim)},
                 {"heads", std::to_string(heads)}, {"n_max", std::to_string(n_max)}, {"grid", std::to_string(grid)},
                 {"channels", ch}, {"kernel", std::to_string(kernel)}, {"diffusion_steps", std::to_string(diffusion_steps)},
                 {"sample_steps", std::to_string(sample_steps)}, {"processor", processor == Processor::AAP ? "AAP" : "LE"},
                 {"window", window == WindowMode::MW ? "MW" : "CT"}, {"position_scale", scale}, {"window_scale", wscale},
                 {"prediction", prediction == Prediction::Eps ? "eps" : "x0"}, {"local_grid", std::to_string(local_grid)},
-                {"local_extent", lext}};
+                {"local_extent", lext}, {"frame", frame == SceneFrame::World ? "world" : "local"}, {"subgoal_distance", sub}};
+        if (n_train_max > 0) md["train.n_train_max"] = std::to_string(n_train_max);  // training writes it too
+        return md;
     }
     static ModelConfig from_metadata(const std::map<std::string, std::string>& md, const std::string& source) {
         auto get = [&](const std::string& k) -> const std::string& {
@@ -1834,6 +1848,14 @@ struct ModelConfig {
         const std::string& pr = get("prediction");
         if (pr != "eps" && pr != "x0") throw std::runtime_error(source + ": metadata field 'prediction' must be eps or x0");
         c.prediction = pr == "eps" ? Prediction::Eps : Prediction::X0;
+        // Fields of release 0.2; a 0.1 checkpoint has none of them and means the defaults.
+        if (md.count("frame")) {
+            const std::string& f = get("frame");
+            if (f != "world" && f != "local") throw std::runtime_error(source + ": metadata field 'frame' must be world or local");
+            c.frame = f == "world" ? SceneFrame::World : SceneFrame::Local;
+        }
+        if (md.count("subgoal_distance")) c.subgoal_distance = real("subgoal_distance");
+        if (md.count("train.n_train_max")) c.n_train_max = integer("train.n_train_max");
         try { c.validate(); } catch (const std::invalid_argument& e) { throw std::runtime_error(source + ": " + e.what()); }
         return c;
     }
@@ -1845,12 +1867,24 @@ struct SceneBatch {
     std::vector<float> agent_mask;  // (A) 1 = active agent, 0 = padding
     std::vector<int> slot;          // (A) PE_agent slot in [0, n_max), distinct within a scene
     std::vector<int> count;         // (B) active agents per scene (n_a)
-    Mat pose;                       // (4, A) normalised current position x, y and goal x, y
+    Mat pose;                       // (4, A) normalised current position x, y and goal x, y, from the scene's origin
     Mat grid;                       // (1, G*G*B) occupancy grid per scene, column b*G*G + row*G + col
     Mat local;                      // (1, Gl*Gl*A) each agent's crop of the map (local_crop), when Gl > 0
     bool shared_grid = false;       // grid holds one map for every scene (planning only; encoded once)
+    std::vector<Vec2> origin;       // (B) world position of each scene's frame (0 in the World frame)
+    std::vector<float> goal_final;  // (A) 1: the goal is the agent's real goal; 0: a route subgoal (never pinned)
+    std::vector<uint64_t> noise_seed;  // (B) or empty: scene b's sampling noise from its own stream (decentralised planning)
 
     int agents() const { return B * n; }
+    // Agent a's position and goal in world units, decoded from pose.
+    Vec2 position(int a, const ModelConfig& c) const {
+        const Vec2& o = origin[a / n];
+        return {o.x + pose(0, a) * (double)c.position_scale, o.y + pose(1, a) * (double)c.position_scale};
+    }
+    Vec2 goal(int a, const ModelConfig& c) const {
+        const Vec2& o = origin[a / n];
+        return {o.x + pose(2, a) * (double)c.position_scale, o.y + pose(3, a) * (double)c.position_scale};
+    }
     int grid_scenes() const { return shared_grid ? 1 : B; }
     void resize(int B_, int n_, int G, int Gl = 0, bool shared = false) {
         B = B_;
@@ -1862,6 +1896,9 @@ struct SceneBatch {
         pose.setZero(4, B * n);
         grid.setZero(1, (long)G * G * grid_scenes());
         local.setZero(1, (long)Gl * Gl * B * n);
+        origin.assign(B, Vec2{0, 0});
+        goal_final.assign((size_t)B * n, 1.0f);
+        noise_seed.clear();
     }
     void resize(int B_, int n_, const ModelConfig& c, bool shared = false) { resize(B_, n_, c.grid, c.local_grid, shared); }
 };
@@ -1871,30 +1908,72 @@ struct SceneBatch {
 // SceneBatch. The planner (DiffusionPlanner::plan_into) and the trainer (make_train_batch)
 // both call these, so what the model sees in training is what it sees when planning.
 
-// Scene `scene`'s map as the model's occupancy grid.
+// A scene's origin for the robots at positions pos(0) .. pos(m-1): the centre of their bounding
+// box in the Local frame (so a scene and its translate encode alike), the world's centre in the
+// World frame. Order-free: a robot planning alone finds the origin the team plan used.
+template <class PositionOf>
+Vec2 scene_origin(const ModelConfig& c, int m, PositionOf pos) {
+    if (c.frame == SceneFrame::World || m <= 0) return {0, 0};
+    Vec2 lo = pos(0), hi = lo;
+    for (int i = 1; i < m; ++i) {
+        const Vec2 p = pos(i);
+        lo = {std::min(lo.x, p.x), std::min(lo.y, p.y)};
+        hi = {std::max(hi.x, p.x), std::max(hi.y, p.y)};
+    }
+    return (lo + hi) * 0.5;
+}
+
+// Scene `scene`'s map as the model's occupancy grid: the whole world (World frame), or a crop of
+// +-position_scale around batch.origin[scene] (Local frame; cells beyond the walls are occupied).
+// Set the scene's origin first.
 inline void encode_map(SceneBatch& batch, int scene, const WorldMap& map, const ModelConfig& c) {
-    const Grid g = occupancy_grid(map, c.grid);
     const long G2 = (long)c.grid * c.grid;
+    if (c.frame == SceneFrame::Local) {
+        local_crop(map, batch.origin[scene], c.grid, c.position_scale, batch.grid.data() + scene * G2);
+        return;
+    }
+    const Grid g = occupancy_grid(map, c.grid);
     for (long j = 0; j < G2; ++j) batch.grid(0, scene * G2 + j) = g.cells[j];
 }
 
-// Agent column a: active, with PE_agent slot `slot`, its normalised position and goal, and its
-// own crop of the map (when the model has one).
-inline void encode_agent(SceneBatch& batch, int a, int slot, Vec2 pos, Vec2 goal, const WorldMap& map, const ModelConfig& c) {
+// What the model is told to head for (the planner and the trainer both ask here). Without route
+// subgoals (subgoal_distance = 0): the goal. With: the goal when it is within subgoal_distance D
+// and in straight view; else a point D away in the direction of the route's next waypoint
+// (RouteGuide::subgoal, at most kRouteLookahead ahead). Placing it D away, not at the waypoint,
+// keeps the model's reading of a goal it has not reached: "keep going this way", as for any far
+// goal, never "stop here" (a goal between the pinning reach and D is a real goal).
+constexpr double kRouteLookahead = 0.8;
+inline RouteGoal route_goal(RouteGuide& guide, const ModelConfig& c, const WorldMap& map, Vec2 pos, Vec2 goal) {
+    const double D = c.subgoal_distance;
+    if (D <= 0 || (norm(goal - pos) <= D && guide.in_view(map, pos, goal))) return {goal, true};
+    const RouteGoal next = guide.subgoal(map, pos, goal, std::min(D, kRouteLookahead));
+    const Vec2 d = next.goal - pos;
+    if (norm(d) < 1e-9) return {goal, true};  // no direction: the goal itself
+    return {pos + d * (D / norm(d)), false};
+}
+
+// Agent column a (scene a / n, whose origin is set): active, with PE_agent slot `slot`, its
+// position and goal normalised from the scene's origin, whether that goal is its real one
+// (`final`; a subgoal's end is never pinned), and its own crop of the map (when the model has one).
+inline void encode_agent(SceneBatch& batch, int a, int slot, Vec2 pos, Vec2 goal, const WorldMap& map, const ModelConfig& c,
+                         bool final = true) {
+    const Vec2 o = batch.origin[a / batch.n], p = pos - o, g = goal - o;
     batch.agent_mask[a] = 1;
     batch.slot[a] = slot;
-    batch.pose.col(a) << (float)(pos.x / c.position_scale), (float)(pos.y / c.position_scale), (float)(goal.x / c.position_scale),
-        (float)(goal.y / c.position_scale);
+    batch.goal_final[a] = final ? 1.0f : 0.0f;
+    batch.pose.col(a) << (float)(p.x / c.position_scale), (float)(p.y / c.position_scale), (float)(g.x / c.position_scale),
+        (float)(g.y / c.position_scale);
     if (c.local_grid > 0) local_crop(map, pos, c.local_grid, c.local_extent, batch.local.data() + (long)a * c.local_grid * c.local_grid);
 }
 
 // About the distance a window covers at the expert's cruising pace (0.55 units for 15 steps).
 inline float default_goal_reach(const ModelConfig& c) { return (float)(0.55 * (c.horizon - 1) * c.waypoint_stride / 15.0); }
 
-// The goal-pinning rule: agent a's window ends at its goal when the goal is within `reach`
-// world units of it. Training pins that waypoint (to the demonstrated end), the sampler
-// inpaints it with the goal, `*end` (normalised displacement units).
+// The goal-pinning rule: agent a's window ends at its goal when the goal is its real goal and
+// within `reach` world units of it. Training pins that waypoint (to the demonstrated end), the
+// sampler inpaints it with the goal, `*end` (normalised displacement units).
 inline bool end_pinned(const SceneBatch& batch, int a, const ModelConfig& c, float reach, Eigen::Vector2f* end = nullptr) {
+    if (batch.goal_final[a] == 0) return false;
     const Eigen::Vector2f to_goal = (batch.pose.col(a).tail<2>() - batch.pose.col(a).head<2>()) * c.position_scale;
     if (to_goal.norm() > reach) return false;
     if (end) *end = to_goal / c.window_scale;
@@ -2505,7 +2584,8 @@ private:
             throw std::invalid_argument("scene batch: " + std::to_string(b.n) + " agent slots exceed the model's n_max = " + std::to_string(config.n_max));
         if ((long)b.agent_mask.size() != A || (long)b.slot.size() != A || (long)b.count.size() != b.B || b.pose.rows() != 4 ||
             b.pose.cols() != A || b.grid.rows() != 1 || b.grid.cols() != (long)config.grid * config.grid * b.grid_scenes() ||
-            b.local.cols() != (long)config.local_grid * config.local_grid * A)
+            b.local.cols() != (long)config.local_grid * config.local_grid * A || (long)b.origin.size() != b.B ||
+            (long)b.goal_final.size() != A || (!b.noise_seed.empty() && (long)b.noise_seed.size() != b.B))
             throw std::invalid_argument("scene batch: array sizes do not match B = " + std::to_string(b.B) + ", n = " + std::to_string(b.n));
         for (int s = 0; s < b.B; ++s)
             if (b.count[s] < 0 || b.count[s] > config.n_max)
@@ -2648,12 +2728,14 @@ struct MapFields {
             if (g.x == x && g.y == y) return &g;
         return nullptr;
     }
-    // Makes the goal fields of every active agent of `batch` that has none yet.
+    // Makes the goal fields of every active agent of `batch` that has none yet (real goals only:
+    // a route subgoal is in straight view, SceneBatch::goal_final).
     void add_goals(const SceneBatch& batch, const ModelConfig& c, double radius) {
         MADBP_ASSERT(clearance.nodes >= 2);
         for (int a = 0; a < batch.agents(); ++a) {
-            if (batch.agent_mask[a] == 0) continue;
-            const double gx = batch.pose(2, a) * (double)c.position_scale, gy = batch.pose(3, a) * (double)c.position_scale;
+            if (batch.agent_mask[a] == 0 || batch.goal_final[a] == 0) continue;
+            const Vec2 g = batch.goal(a, c);
+            const double gx = g.x, gy = g.y;
             if (find(gx, gy)) continue;
             if ((int)goals.size() >= kMaxGoalFields) goals.clear();
             goals.push_back(GoalField{gx, gy, {}});
@@ -2709,9 +2791,9 @@ private:
 // P_a(t) = p_a + window_scale * x_a(t), t = 1 .. H-1 (t = 0 is the current position p_a):
 //   agent_weight * sum over pairs a < b and t of max(0, 2 radius + agent_margin - |P_a(t) - P_b(t)|)^2
 // + map_weight   * sum over a and t of max(0, radius + map_margin - clearance(P_a(t)))^2
-// + goal_weight  * sum over a of dist(P_a(H-1), g_a)     (g_a: a's goal)
+// + goal_weight  * sum over a of dist(P_a(H-1), g_a)     (g_a: a's goal or route subgoal)
 // where dist is the distance around the obstacles (MapFields' goal field) with `geodesic` and a
-// goal field made for g_a, else sqrt(|P - g|^2 + 0.01^2). Squared hinges, so the cost is smooth
+// goal field made for g_a (real goals only), else sqrt(|P - g|^2 + 0.01^2). Squared hinges, so the cost is smooth
 // where they switch on. Every weight and margin >= 0.
 struct WindowCost {
     float radius = 0.1f;         // robot radius, world units (WorldConfig::radius)
@@ -2734,7 +2816,10 @@ inline double window_cost(const SceneBatch& batch, int s, const Mat& x, const Mo
     const double ps = c.position_scale, ws = c.window_scale;
     MADBP_ASSERT(s >= 0 && s < batch.B && x.cols() == (long)H * batch.agents());
     MADBP_ASSERT(!grad || (grad->rows() == 2 && grad->cols() == x.cols()));
-    auto P = [&](int a, int t, int k) { return batch.pose(k, a) * ps + ws * x(k, (long)a * H + t); };
+    auto P = [&](int a, int t, int k) {  // waypoint t of agent a, world units
+        const Vec2& o = batch.origin[a / n];
+        return (k ? o.y : o.x) + batch.pose(k, a) * ps + ws * x(k, (long)a * H + t);
+    };
     auto add = [&](int a, int t, double dx, double dy) {  // d cost / d P -> d cost / d x
         (*grad)(0, (long)a * H + t) += (float)(ws * dx);
         (*grad)(1, (long)a * H + t) += (float)(ws * dy);
@@ -2767,8 +2852,9 @@ inline double window_cost(const SceneBatch& batch, int s, const Mat& x, const Mo
             if (grad) add(a, t, -2.0 * w.map_weight * h * gx, -2.0 * w.map_weight * h * gy);
         }
         // The window's end far from the goal.
-        const double goal_x = batch.pose(2, a) * ps, goal_y = batch.pose(3, a) * ps;
-        const MapFields::GoalField* gf = w.geodesic ? fields.find(goal_x, goal_y) : nullptr;
+        const Vec2 goal = batch.goal(a, c);
+        const double goal_x = goal.x, goal_y = goal.y;
+        const MapFields::GoalField* gf = w.geodesic && batch.goal_final[a] != 0 ? fields.find(goal_x, goal_y) : nullptr;
         if (gf) {
             double gx = 0, gy = 0;
             cost += w.goal_weight * fields.goal_distance(*gf, P(a, H - 1, 0), P(a, H - 1, 1), &gx, &gy);
@@ -2796,16 +2882,22 @@ inline void repeat_scenes(const SceneBatch& src, int k, SceneBatch& dst) {
     dst.pose.resize(4, (long)Bk * n);
     dst.grid.resize(1, G2 * dst.grid_scenes());
     dst.local.resize(1, L * Bk * n);
+    dst.origin.resize(Bk);
+    dst.goal_final.resize((size_t)Bk * n);
+    dst.noise_seed.resize(src.noise_seed.empty() ? 0 : Bk);
     if (src.shared_grid) dst.grid = src.grid;
     for (int b = 0; b < B; ++b)
         for (int j = 0; j < k; ++j) {
             const int d = b * k + j;
             dst.count[d] = src.count[b];
+            dst.origin[d] = src.origin[b];
+            if (!src.noise_seed.empty()) dst.noise_seed[d] = src.noise_seed[b] + 0x9E3779B97F4A7C15ull * (uint64_t)j;  // candidates differ
             if (!src.shared_grid) dst.grid.middleCols((long)d * G2, G2) = src.grid.middleCols((long)b * G2, G2);
             for (int i = 0; i < n; ++i) {
                 const int from = b * n + i, to = d * n + i;
                 dst.agent_mask[to] = src.agent_mask[from];
                 dst.slot[to] = src.slot[from];
+                dst.goal_final[to] = src.goal_final[from];
                 dst.pose.col(to) = src.pose.col(from);
                 if (L) dst.local.middleCols((long)to * L, L) = src.local.middleCols((long)from * L, L);
             }
@@ -2842,6 +2934,22 @@ struct SamplerConfig {
 };
 
 namespace detail {
+// The starting noise x (2, H*A) ~ N(0, I): from `rng`, or with batch.noise_seed each scene's
+// columns from its own stream (so a scene draws the same noise in any batch).
+inline void draw_noise(const SceneBatch& batch, int H, Rng& rng, Mat& x) {
+    x.resize(2, (long)H * batch.agents());
+    if (batch.noise_seed.empty()) {
+        for (long j = 0; j < x.size(); ++j) x.data()[j] = (float)rng.normal();
+        return;
+    }
+    MADBP_ASSERT((int)batch.noise_seed.size() == batch.B);
+    const long per_scene = 2L * H * batch.n;
+    for (int b = 0; b < batch.B; ++b) {
+        Rng scene_rng(batch.noise_seed[b]);
+        for (long j = 0; j < per_scene; ++j) x.data()[b * per_scene + j] = (float)scene_rng.normal();
+    }
+}
+
 // sample_windows with SamplerConfig::guidance and candidates: the batch's scenes repeated k
 // times (repeat_scenes) and denoised together; at every DDIM step the clipped x0_hat takes one
 // gradient step on its WindowCost (scaled so that a waypoint moves -W * d cost / d waypoint
@@ -2866,8 +2974,7 @@ void sample_conflict_aware(Denoiser& model, const NoiseSchedule& schedule, const
     const int A = rb.agents(), Bk = rb.B;
     model.encode_context(rb);
     Mat& x = cw.x;
-    x.resize(2, (long)H * A);
-    for (long j = 0; j < x.size(); ++j) x.data()[j] = (float)rng.normal();
+    draw_noise(rb, H, rng, x);
     auto impose = [&]() {
         for (int a = 0; a < A; ++a) {
             auto w = x.middleCols((long)a * H, H);
@@ -2938,8 +3045,7 @@ void sample_windows(Denoiser& model, const NoiseSchedule& schedule, const SceneB
     const int A = batch.agents(), H = c.horizon, B = batch.B, S = sc.sample_steps;
     if (S < 1 || S > schedule.K) throw std::invalid_argument("sample_steps: " + std::to_string(S) + " must be in [1, " + std::to_string(schedule.K) + "]");
     model.encode_context(batch);
-    x.resize(2, (long)H * A);
-    for (long j = 0; j < x.size(); ++j) x.data()[j] = (float)rng.normal();
+    detail::draw_noise(batch, H, rng, x);
     auto impose = [&]() {
         for (int a = 0; a < A; ++a) {
             auto w = x.middleCols((long)a * H, H);
@@ -2977,14 +3083,22 @@ void sample_windows(Denoiser& model, const NoiseSchedule& schedule, const SceneB
 // PlanFollower (madbp_sim.hpp) to execute the first m waypoints and replan:
 //   madbp::DiffusionPlanner planner(madbp::load_model("models/madbp-default.safetensors"));
 //   madbp::PlanFollower follower([&](const madbp::World& w) { return planner.plan(w); });
+// A robot that plans for itself (decentralised) calls plan_robot with what it knows instead.
 class DiffusionPlanner {
 public:
+    // Another robot as one robot knows it: position and goal as received from it.
+    struct Neighbour {
+        Vec2 pos, goal;
+    };
     SamplerConfig sampler;
-    // Neighbourhood planning for teams larger than the model was trained on: with K > 0 and
-    // more than K agents, each agent's window comes from its own scene of itself and its K-1
-    // nearest agents (n scenes of K agents, sampled as one batch), so the model never attends
-    // over more agents than it saw in training. 0: the whole team in one scene (the paper's).
-    int neighbours = 0;
+    // Who plans with whom. 0: the whole team in one scene (the paper's). K > 0: neighbourhood
+    // planning: each robot's window comes from its own scene of itself and its K-1 nearest
+    // robots within sensing_radius (n scenes of <= K robots, sampled as one batch), so the model
+    // never attends over more robots than it saw in training. -1 (default): automatic, K = the
+    // model's n_train_max (n_max when unknown), neighbourhoods when the team is larger than K or
+    // the world larger than the training world (half-size > position_scale).
+    int neighbours = -1;
+    double sensing_radius = 0;  // world units; 0 = the model's position_scale (the training world's half-size)
 
     explicit DiffusionPlanner(MadbpModel model, uint64_t seed = 0)
         : model_(std::move(model)), schedule_(model_.config.diffusion_steps), rng_(seed) {
@@ -2998,6 +3112,18 @@ public:
     const ConflictWorkspace& last_candidates() const { return conflict_; }  // costs and choices of the last conflict-aware plan
     void reseed(uint64_t seed) { rng_.reseed(seed); }
 
+    // Robots per scene (at most) when planning a team of n in a world of half-size `half_size`,
+    // by the rule of `neighbours`; neighbourhood planning when this is < n or the world is larger
+    // than the training world.
+    int neighbourhood(int n, double half_size) const {
+        const ModelConfig& c = model_.config;
+        if (neighbours < -1) throw std::invalid_argument("planner: neighbours must be -1 (automatic) or >= 0 (got " + std::to_string(neighbours) + ")");
+        if (neighbours == 0) return n;
+        if (neighbours > 0) return std::min(neighbours, n);
+        const int K = c.n_train_max > 0 ? c.n_train_max : c.n_max;
+        return std::min(K, n);  // (a larger world: scenes of every robot within sensing range, at most K)
+    }
+
     // A window for all present agents of `world`: waypoints for steps t+1 .. t+(H-1)*stride
     // (with a waypoint stride > 1, the steps between two sampled waypoints are interpolated).
     Plan plan(const World& world) {
@@ -3008,55 +3134,52 @@ public:
     // As plan(), reusing `out`'s storage: no heap allocation once sizes are steady.
     void plan_into(const World& world, Plan& out) {
         auto t0 = std::chrono::steady_clock::now();
-        const ModelConfig& c = model_.config;
-        const int n = world.size(), H = c.horizon;
+        const int n = world.size();
         out.ids.resize(n);
         out.waypoints.resize(n);
         if (n == 0) { out.plan_ms = 0; return; }
         for (const Agent& a : world.agents())
             if (!std::isfinite(a.pos.x + a.pos.y + a.goal.x + a.goal.y))  // the message only on failure: no allocation
                 throw std::invalid_argument("planner: agent " + std::to_string(a.id) + " has a non-finite position or goal");
-        if (neighbours < 0) throw std::invalid_argument("planner: neighbours must be >= 0 (got " + std::to_string(neighbours) + ")");
-        const bool local = neighbours > 0 && neighbours < n;
-        const int scenes = local ? n : 1, per_scene = local ? neighbours : n;
-        if (per_scene > c.n_max)
-            throw std::invalid_argument("planner: " + std::to_string(per_scene) + " agents per scene exceed the model's n_max = " +
-                                        std::to_string(c.n_max) + (local ? "" : "; larger teams need neighbourhood planning (neighbours = K <= n_max, --neighbours K)"));
-        if (batch_.B != scenes || batch_.n != per_scene) {  // a team of another size: new buffers, grid redrawn
-            batch_.resize(scenes, per_scene, c, /*shared grid*/ true);
-            grid_valid_ = false;
-        }
-        update_grid(world.map());
-        // Scene b holds agent b first, then its nearest agents (all agents in order when not local).
-        for (int b = 0; b < scenes; ++b) {
-            members_.resize(n);
-            for (int i = 0; i < n; ++i) members_[i] = i;
-            if (local) {
-                const Vec2 pb = world.agents()[b].pos;
-                auto dist = [&](int i) { const Vec2 d = world.agents()[i].pos - pb; return i == b ? -1.0 : dot(d, d); };
-                std::partial_sort(members_.begin(), members_.begin() + per_scene, members_.end(),
-                                  [&](int i, int j) { return dist(i) < dist(j) || (dist(i) == dist(j) && i < j); });
-            }
-            for (int k = 0; k < per_scene; ++k) {
-                const Agent& a = world.agents()[members_[k]];
-                encode_agent(batch_, b * per_scene + k, /*slot*/ k, a.pos, a.goal, world.map(), c);
-            }
-            batch_.count[b] = per_scene;
-        }
-        if (sampler.conflict_aware()) conflict_.set_map(world.map());  // the distance field, once per map
-        sample_windows(model_, schedule_, batch_, sampler, rng_, x_, eps_, steps_, &conflict_);
+        const int K = neighbourhood(n, world.map().half_size);
+        const bool local = K < n || world.map().half_size > model_.config.position_scale * (1 + 1e-9);
+        pos_.resize(n);
+        goal_.resize(n);
+        ids_.resize(n);
         for (int i = 0; i < n; ++i) {
-            out.ids[i] = world.agents()[i].id;
-            const long col = local ? (long)i * per_scene : i;  // agent i's window: first of scene i, or column i
-            const int stride = c.waypoint_stride;
-            out.waypoints[i].resize((size_t)(H - 1) * stride);
-            const Vec2 p0 = world.agents()[i].pos;
-            auto at = [&](int t) { return p0 + Vec2{x_(0, col * H + t) * (double)c.window_scale, x_(1, col * H + t) * (double)c.window_scale}; };
-            for (int t = 1; t < H; ++t)
-                for (int s = 1; s <= stride; ++s)  // linear between sampled waypoints t-1 and t
-                    out.waypoints[i][(size_t)(t - 1) * stride + s - 1] = at(t - 1) + (at(t) - at(t - 1)) * ((double)s / stride);
+            pos_[i] = world.agents()[i].pos;
+            goal_[i] = world.agents()[i].goal;
+            ids_[i] = world.agents()[i].id;
+        }
+        plan_scenes(world.map(), n, local ? n : 1, K, local);
+        for (int i = 0; i < n; ++i) {
+            out.ids[i] = ids_[i];
+            decode_window(local ? (long)i * K : i, pos_[i], out.waypoints[i]);  // agent i: first of scene i, or column i
         }
         out.plan_ms = std::chrono::duration<double, std::milli>(std::chrono::steady_clock::now() - t0).count();
+    }
+
+    // Decentralised use: one robot plans its own window from what it can know, its position and
+    // goal, the other robots' positions and goals as received from them, and the map. `id` seeds
+    // the draw (use the robot's id): with the same planner seed, and `others` in the world's agent
+    // order, the window equals the one plan() gives this robot under neighbourhood planning (K =
+    // neighbourhood size of an automatic or set `neighbours`; the whole team when neighbours = 0).
+    void plan_robot(const WorldMap& map, int id, Vec2 pos, Vec2 goal, const std::vector<Neighbour>& others, std::vector<Vec2>& window) {
+        const int n = 1 + (int)others.size();
+        for (int i = 0; i < n; ++i) {
+            const Vec2 p = i ? others[i - 1].pos : pos, g = i ? others[i - 1].goal : goal;
+            if (!std::isfinite(p.x + p.y + g.x + g.y))
+                throw std::invalid_argument(i ? "planner: neighbour " + std::to_string(i - 1) + " has a non-finite position or goal"
+                                              : std::string("planner: the robot's position or goal is not finite"));
+        }
+        const int K = neighbours == 0 ? n : neighbourhood(std::max(n, model_.config.n_max + 1), map.half_size);
+        pos_.resize(n);
+        goal_.resize(n);
+        ids_.resize(n);
+        pos_[0] = pos, goal_[0] = goal, ids_[0] = id;
+        for (int i = 1; i < n; ++i) pos_[i] = others[i - 1].pos, goal_[i] = others[i - 1].goal, ids_[i] = -1;
+        plan_scenes(map, n, 1, std::min(K, n), /*local*/ true);
+        decode_window(0, pos, window);
     }
 
 private:
@@ -3067,8 +3190,76 @@ private:
     WorldMap grid_map_;
     bool grid_valid_ = false;
     Mat x_, eps_;
-    std::vector<int> steps_, members_;
-    ConflictWorkspace conflict_;  // guidance and best-of-k (SamplerConfig::guidance, candidates)
+    std::vector<int> steps_, members_, ids_;
+    std::vector<Vec2> pos_, goal_;   // the robots planned for (ego first for plan_robot)
+    std::vector<RouteGoal> route_;   // what each is told to head for (route_goal)
+    RouteGuide guide_;               // route subgoals (ModelConfig::subgoal_distance)
+    ConflictWorkspace conflict_;     // guidance and best-of-k (SamplerConfig::guidance, candidates)
+
+    // Plans `scenes` scenes of at most K robots over pos_/goal_ (n robots): scene b is robot b
+    // and its nearest within the sensing radius (local), or all n robots in order. x_ holds the
+    // windows, scene b's robot k at column b * K + k.
+    void plan_scenes(const WorldMap& map, int n, int scenes, int K, bool local) {
+        const ModelConfig& c = model_.config;
+        if (K > c.n_max)
+            throw std::invalid_argument("planner: " + std::to_string(K) + " agents per scene exceed the model's n_max = " + std::to_string(c.n_max) +
+                                        (local ? "" : "; larger teams need neighbourhood planning (neighbours = K <= n_max, --neighbours K)"));
+        const bool shared = c.frame == SceneFrame::World;  // one grid for every scene
+        if (batch_.B != scenes || batch_.n != K || batch_.shared_grid != shared) {  // new buffers, grid redrawn
+            batch_.resize(scenes, K, c, shared);
+            grid_valid_ = false;
+        }
+        if (shared) update_grid(map);
+        route_.resize(n);
+        for (int i = 0; i < n; ++i) route_[i] = route_goal(guide_, c, map, pos_[i], goal_[i]);
+        const double radius = sensing_radius > 0 ? sensing_radius : c.position_scale;
+        // Each neighbourhood scene draws its own noise, seeded by the plan and its robot's id.
+        const uint64_t plan_seed = local ? rng_.next_u64() : 0;
+        if (local) batch_.noise_seed.resize(scenes);
+        else batch_.noise_seed.clear();
+        for (int b = 0; b < scenes; ++b) {
+            int m = n;
+            members_.resize(n);
+            for (int i = 0; i < n; ++i) members_[i] = i;
+            if (local) {
+                const Vec2 pb = pos_[b];
+                auto dist = [&](int i) { const Vec2 d = pos_[i] - pb; return i == b ? -1.0 : dot(d, d); };
+                m = std::min(K, n);
+                std::partial_sort(members_.begin(), members_.begin() + m, members_.end(),
+                                  [&](int i, int j) { return dist(i) < dist(j) || (dist(i) == dist(j) && i < j); });
+                while (m > 1 && dist(members_[m - 1]) > radius * radius) --m;
+                batch_.noise_seed[b] = plan_seed ^ (0x9E3779B97F4A7C15ull * (uint64_t)(ids_[b] + 1));
+            }
+            batch_.origin[b] = scene_origin(c, m, [&](int k) { return pos_[members_[k]]; });
+            if (!shared) encode_map(batch_, b, map, c);
+            for (int k = 0; k < K; ++k) {
+                const int a = b * K + k;
+                if (k >= m) {  // an empty slot
+                    batch_.agent_mask[a] = 0;
+                    batch_.slot[a] = k;
+                    batch_.goal_final[a] = 1;
+                    batch_.pose.col(a).setZero();
+                    continue;
+                }
+                const int i = members_[k];
+                encode_agent(batch_, a, /*slot*/ k, pos_[i], route_[i].goal, map, c, route_[i].final);
+            }
+            batch_.count[b] = m;
+        }
+        if (sampler.conflict_aware()) conflict_.set_map(map);  // the distance field, once per map
+        sample_windows(model_, schedule_, batch_, sampler, rng_, x_, eps_, steps_, &conflict_);
+    }
+
+    // Column `col` of x_ as waypoints from p0 (world units), interpolated to every world step.
+    void decode_window(long col, Vec2 p0, std::vector<Vec2>& w) const {
+        const ModelConfig& c = model_.config;
+        const int H = c.horizon, stride = c.waypoint_stride;
+        w.resize((size_t)(H - 1) * stride);
+        auto at = [&](int t) { return p0 + Vec2{x_(0, col * H + t) * (double)c.window_scale, x_(1, col * H + t) * (double)c.window_scale}; };
+        for (int t = 1; t < H; ++t)
+            for (int s = 1; s <= stride; ++s)  // linear between sampled waypoints t-1 and t
+                w[(size_t)(t - 1) * stride + s - 1] = at(t - 1) + (at(t) - at(t - 1)) * ((double)s / stride);
+    }
 
     // Rasterizes the map only when it changed since the last plan.
     void update_grid(const WorldMap& map) {

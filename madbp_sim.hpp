@@ -141,7 +141,8 @@ inline std::string number_text(double v) {
 //   9 tracker and safety filter: track_waypoint, safety_filter                  [3.2]
 //  10 plans: Plan, Planner, validate_plan, LinePlanner, PlanFollower             [3.2, 3.5, 8]
 //  11 episodes and evaluation: EpisodeLog, run_episode, evaluate                 [9, 10]
-//  12 guided expert: ClearanceGrid, wavefront, ExpertParams, GuidedExpert        [3.6]
+//  12 guided expert: ClearanceGrid, wavefront, RouteGoal, RouteGuide (route subgoals),
+//     ExpertParams, GuidedExpert                                                 [3.6]
 //  13 SVG: render_svg, write_text_file                                           [2]
 
 #include <algorithm>
@@ -653,14 +654,16 @@ struct WorldBatch {
 //             (n <= 2) or a head-on pair (n >= 3) along a rotated line of 1.2-1.8 L, the other
 //             robots parked between, up to 0.05 off the line.
 //   circle    antipodal swaps on a circle of radius 0.6-1.0 L (random centre, angles evenly
-//             spaced from a random one, each jittered by up to 0.1 rad).
+//             spaced from a random one, each jittered by up to min(0.1, pi / 4n) rad); the
+//             classic benchmark scene, for up to kMaxCircleAgents robots.
 // Every scene is checked and redrawn (at most kMaxScenarioTries draws, then std::runtime_error):
 // starts >= 0.25 apart, goals >= 0.25 apart (a start may equal another robot's goal), every
 // start and goal >= radius + 0.06 from every obstacle and wall surface, and every goal reachable
 // from its start on the guided expert's planning grid (cells of ~0.036, clearance >= 0.13 at cell
-// centres: the wavefront of Section 12). n is in [1, kMaxScenarioAgents].
+// centres: the wavefront of Section 12). n is in [1, kMaxScenarioAgents] (circle: kMaxCircleAgents).
 constexpr int kMaxScenarioTries = 2000;
 constexpr int kMaxScenarioAgents = 4;
+constexpr int kMaxCircleAgents = 64;
 
 inline const std::vector<std::string>& interaction_scenarios() {
     static const std::vector<std::string> names = {"swap", "cross", "gap", "corridor", "parked", "circle"};
@@ -762,15 +765,16 @@ inline bool interaction_scene_valid(const WorldMap& map, const std::vector<Vec2>
 
 // A scene of the named interaction scenario (see above) on the named map, for n robots, all drawn
 // from `seed`. Throws std::invalid_argument on an unknown scenario or map name or n outside
-// [1, kMaxScenarioAgents], std::runtime_error when no valid layout was found.
+// [1, kMaxScenarioAgents] ([1, kMaxCircleAgents] for circle), std::runtime_error when no valid layout was found.
 inline World make_interaction_world(const std::string& scenario, const std::string& map_name, int n, uint64_t seed,
                                     double half_size = 1.2, WorldConfig cfg = WorldConfig{}) {
     const auto& names = interaction_scenarios();
     if (std::find(names.begin(), names.end(), scenario) == names.end())
         throw std::invalid_argument("scenario: unknown scenario '" + printable(scenario) +
                                     "' (expected swap, cross, gap, corridor, parked or circle)");
-    if (n < 1 || n > kMaxScenarioAgents)
-        throw std::invalid_argument("scenario " + scenario + ": agents must be in [1, " + std::to_string(kMaxScenarioAgents) + "] (got " +
+    const int max_agents = scenario == "circle" ? kMaxCircleAgents : kMaxScenarioAgents;
+    if (n < 1 || n > max_agents)
+        throw std::invalid_argument("scenario " + scenario + ": agents must be in [1, " + std::to_string(max_agents) + "] (got " +
                                     std::to_string(n) + ")");
     Rng rng(seed);
     const WorldMap base = make_map(map_name, rng, half_size);
@@ -886,9 +890,9 @@ inline World make_interaction_world(const std::string& scenario, const std::stri
                 g.push_back(p);
             }
         } else {  // circle
-            const double R = rng.uniform(0.6, 1.0) * L, a0 = rng.uniform(0, 2 * pi);
+            const double R = rng.uniform(0.6, 1.0) * L, a0 = rng.uniform(0, 2 * pi), jitter = std::min(0.1, 0.25 * pi / n);
             for (int i = 0; i < n; ++i) {
-                const Vec2 p = c + dir(a0 + 2 * pi * i / n + rng.uniform(-0.1, 0.1)) * R;
+                const Vec2 p = c + dir(a0 + 2 * pi * i / n + rng.uniform(-jitter, jitter)) * R;
                 s.push_back(p);
                 g.push_back(c * 2.0 - p);
             }
@@ -1651,6 +1655,98 @@ inline std::vector<int> wavefront(const ClearanceGrid& cg, int goal_cell, double
     }
     return steps;
 }
+
+// Route subgoals (issue 13): where a robot should head next on its shortest way around the
+// static map to a goal that may be far away. The wavefront of the goal's cell (computed once per
+// map and goal cell, like the expert's) is walked downhill from the robot's cell; the subgoal is
+// the last cell centre of that walk that is still in straight view of the robot (the segment
+// keeps `view_clear` from the map, checked every half cell) and at most `distance` from it. When the goal itself is
+// within `distance` and in view, or the walk arrives, the goal is returned and `final` is set.
+// Memory: the grid plus at most kMaxFields wavefronts (the cache starts again beyond).
+struct RouteGoal {
+    Vec2 goal;           // where to head: the goal itself or a subgoal on the way
+    bool final = true;   // goal is the robot's real goal (the planner may pin the window's end to it)
+};
+class RouteGuide {
+public:
+    static constexpr int kMaxFields = 1024;
+    double cell = 0.036;        // planning cells, world units (the expert's)
+    double clear = 0.13;        // the walk keeps cells with this clearance (the expert's inflate)
+    double view_clear = 0.1;    // a subgoal is visible when the segment to it keeps this clearance (robot radius)
+
+    // The subgoal from p toward goal on `map`, at most `distance` (> 0) world units from p.
+    RouteGoal subgoal(const WorldMap& map, Vec2 p, Vec2 goal, double distance) {
+        if (!(distance > 0) || !std::isfinite(distance)) throw std::invalid_argument("RouteGuide: distance must be a positive number");
+        set_map(map);
+        if (norm(goal - p) <= distance && visible(p, goal)) return {goal, true};
+        const std::vector<int>& steps = field(grid_.index(goal));
+        const int n = grid_.n;
+        int k = grid_.index(p);
+        if (steps[k] < 0) {  // p's cell is too close to the map: start from the best reachable neighbour
+            int best = -1;
+            for (int dr = -2; dr <= 2; ++dr)
+                for (int dc = -2; dc <= 2; ++dc) {
+                    const int r2 = k / n + dr, c2 = k % n + dc;
+                    if (r2 < 0 || r2 >= n || c2 < 0 || c2 >= n) continue;
+                    const int k2 = r2 * n + c2;
+                    if (steps[k2] >= 0 && (best < 0 || steps[k2] < steps[best])) best = k2;
+                }
+            if (best < 0) return {goal, true};  // no route known from here: head straight for the goal
+            k = best;
+        }
+        Vec2 sub = grid_.centre(k);
+        while (steps[k] > 0) {
+            // Downhill: among the neighbours one step closer, the one nearest the goal (straighter paths).
+            int next = -1;
+            for (int dr = -1; dr <= 1; ++dr)
+                for (int dc = -1; dc <= 1; ++dc) {
+                    const int r2 = k / n + dr, c2 = k % n + dc;
+                    if ((dr == 0 && dc == 0) || r2 < 0 || r2 >= n || c2 < 0 || c2 >= n) continue;
+                    const int k2 = r2 * n + c2;
+                    if (steps[k2] != steps[k] - 1) continue;
+                    if (next < 0 || norm(grid_.centre(k2) - goal) < norm(grid_.centre(next) - goal)) next = k2;
+                }
+            if (next < 0) break;
+            k = next;
+            const Vec2 c = steps[k] == 0 ? goal : grid_.centre(k);
+            if (norm(c - p) > distance || !visible(p, c)) break;
+            sub = c;
+            if (steps[k] == 0) return {goal, true};
+        }
+        return {sub, false};
+    }
+    // The segment a-b keeps view_clear from `map` (checked every half cell).
+    bool in_view(const WorldMap& map, Vec2 a, Vec2 b) {
+        set_map(map);
+        return visible(a, b);
+    }
+    const ClearanceGrid& grid() const { return grid_; }
+
+private:
+    ClearanceGrid grid_;
+    WorldMap map_;
+
+    void set_map(const WorldMap& map) {
+        if (grid_.n > 0 && map == map_) return;
+        grid_ = ClearanceGrid(map, cell);
+        map_ = map;
+        fields_.clear();
+    }
+    std::map<int, std::vector<int>> fields_;  // goal cell -> wavefront steps
+
+    const std::vector<int>& field(int goal_cell) {
+        auto it = fields_.find(goal_cell);
+        if (it != fields_.end()) return it->second;
+        if ((int)fields_.size() >= kMaxFields) fields_.clear();
+        return fields_.emplace(goal_cell, wavefront(grid_, goal_cell, clear)).first->second;
+    }
+    bool visible(Vec2 a, Vec2 b) const {
+        const int samples = 1 + (int)std::ceil(norm(b - a) / (0.5 * grid_.cell));
+        for (int i = 0; i <= samples; ++i)
+            if (static_clearance(map_, a + (b - a) * ((double)i / samples)) < view_clear) return false;
+        return true;
+    }
+};
 
 // The guided expert: a privileged classical planner that makes the training demonstrations
 // and a strong classical row. Every `replan_every` steps it plans all agents one after the

@@ -29,7 +29,8 @@
 //   1 demonstrations: Demonstration, DemoSet, CollectConfig, collect_demonstrations       [7]
 //   2 datasets: demos_bytes, save_demos, load_demos, validate_demos                        [11]
 //   3 losses: boundary_loss, temporal_loss, collision_loss                                  [7]
-//   4 training batches: TrainConfig, TrainBatch, make_train_batch, make_windows             [7]
+//   4 training batches: TrainConfig, WindowRef, DemoRoutes, route_demos, TrainBatch,
+//     make_train_batch, make_windows                                                      [7]
 //   5 the loss: LossTerms, diffusion_loss                                                   [7]
 //   6 training scaffold: optimizer-state I/O (append/read_adam, _ema, _rng), Curve,
 //     content_hash, TrainState (identity, resume, atomic state files)                      [11, 12]
@@ -545,6 +546,28 @@ struct TrainConfig {
 // A window of one demonstration: frames t .. t+H-1 of episode `episode`.
 struct WindowRef { int episode, t; };
 
+// What every agent of every demonstration is told to head for at every frame (route_goal; only
+// for a model with ModelConfig::subgoal_distance > 0): at[e][t * agents + i], t in [0, steps].
+// Computed once before training, as the planner computes it, on the unmirrored map.
+struct DemoRoutes {
+    std::vector<std::vector<RouteGoal>> at;
+    const RouteGoal& get(const Demonstration& d, int e, int t, int i) const { return at[e][(size_t)std::min(t, d.steps) * d.agents + i]; }
+};
+inline DemoRoutes route_demos(const DemoSet& demos, const ModelConfig& mc, int threads = 1) {
+    DemoRoutes r;
+    r.at.resize(demos.episodes.size());
+    if (mc.subgoal_distance <= 0) return r;
+#pragma omp parallel for num_threads(std::max(1, threads)) schedule(dynamic, 8)
+    for (int e = 0; e < (int)demos.episodes.size(); ++e) {
+        const Demonstration& d = demos.episodes[e];
+        RouteGuide guide;
+        r.at[e].resize((size_t)(d.steps + 1) * d.agents);
+        for (int t = 0; t <= d.steps; ++t)
+            for (int i = 0; i < d.agents; ++i) r.at[e][(size_t)t * d.agents + i] = route_goal(guide, mc, d.map, d.position(t, i), d.goals[i]);
+    }
+    return r;
+}
+
 // A batch ready for the model and the loss. x0 (2, H*A) normalised displacements from each
 // agent's position at the window start; horizon_goal (2, A) the demonstrated displacement at
 // t+H; origin (2, A) the start positions in world units; pinned (H*A) 1 where the sampler
@@ -571,8 +594,10 @@ inline WorldMap mirrored(const WorldMap& m, double fx, double fy) {
 }  // namespace detail
 
 // Draws `batch` windows with at most n_curr agents. Agents go to random distinct PE_agent slots.
+// With `routes` (route_demos) the goals are read from it; without, a model with subgoals
+// computes them here (slowly: one RouteGuide per scene).
 inline void make_train_batch(const DemoSet& demos, const std::vector<WindowRef>& windows, const ModelConfig& mc,
-                             const TrainConfig& tc, int n_curr, Rng& rng, TrainBatch& tb) {
+                             const TrainConfig& tc, int n_curr, Rng& rng, TrainBatch& tb, const DemoRoutes* routes = nullptr) {
     std::vector<int> picks;
     int n_slots = 1;
     for (int tries = 0; (int)picks.size() < tc.batch; ++tries) {
@@ -600,16 +625,20 @@ inline void make_train_batch(const DemoSet& demos, const std::vector<WindowRef>&
         const double fx = tc.augment && rng.uniform() < 0.5 ? -1 : 1, fy = tc.augment && rng.uniform() < 0.5 ? -1 : 1;
         auto mir = [&](Vec2 p) { return Vec2{p.x * fx, p.y * fy}; };
         tb.maps[b] = detail::mirrored(d.map, fx, fy);
+        tb.scene.origin[b] = scene_origin(mc, d.agents, [&](int i) { return mir(d.position(ref.t, i)); });
         encode_map(tb.scene, b, tb.maps[b], mc);
         std::iota(order.begin(), order.end(), 0);
         for (int i = d.agents - 1; i > 0; --i) std::swap(order[i], order[rng.uniform_int(i + 1)]);
         std::iota(slots.begin(), slots.end(), 0);
         for (int i = 0; i < d.agents; ++i) std::swap(slots[i], slots[i + rng.uniform_int(mc.n_max - i)]);
         tb.scene.count[b] = d.agents;
+        RouteGuide guide;  // only without `routes`
         for (int i = 0; i < d.agents; ++i) {
             const int a = b * n + i, src = order[i];
-            const Vec2 start = mir(d.position(ref.t, src)), goal = mir(d.goals[src]);
-            encode_agent(tb.scene, a, slots[i], start, goal, tb.maps[b], mc);
+            const Vec2 start = mir(d.position(ref.t, src));
+            const RouteGoal rg = routes && mc.subgoal_distance > 0 ? routes->get(d, ref.episode, ref.t, src)
+                                                                   : route_goal(guide, mc, d.map, d.position(ref.t, src), d.goals[src]);
+            encode_agent(tb.scene, a, slots[i], start, mir(rg.goal), tb.maps[b], mc, rg.final);
             tb.origin.col(a) << (float)start.x, (float)start.y;
             for (int t = 0; t < H; ++t) {
                 const Vec2 p = mir(d.position(ref.t + t * stride, src)) - start;
@@ -995,6 +1024,7 @@ inline TrainReport train(const DemoSet& demos, MadbpModel& model, const TrainCon
     if (val_eps.empty()) val_eps = train_eps;
     const std::vector<WindowRef> train_windows = make_windows(demos, train_eps, mc, tc.stride);
     const std::vector<WindowRef> val_windows = make_windows(demos, val_eps, mc, tc.stride);
+    const DemoRoutes routes = route_demos(demos, mc, tc.threads);
 
     NoiseSchedule schedule(mc.diffusion_steps);
     Adam adam;
@@ -1033,7 +1063,7 @@ inline TrainReport train(const DemoSet& demos, MadbpModel& model, const TrainCon
         Rng vrng(tc.seed + 777);
         LossTerms sum;
         for (int v = 0; v < tc.val_batches; ++v) {
-            make_train_batch(demos, val_windows, mc, tc, tc.n_train_max, vrng, vb);
+            make_train_batch(demos, val_windows, mc, tc, tc.n_train_max, vrng, vb, &routes);
             LossTerms l = diffusion_loss(model, schedule, vb, tc, vrng, false, ws);
             sum.noise += l.noise / tc.val_batches;
             sum.boundary += l.boundary / tc.val_batches;
@@ -1075,7 +1105,7 @@ inline TrainReport train(const DemoSet& demos, MadbpModel& model, const TrainCon
         for (int r = 0; r < R; ++r) {
             try {
                 replica[r]->set_training(true);
-                make_train_batch(demos, train_windows, mc, share[r], n_curr, rngs[r], batches[r]);
+                make_train_batch(demos, train_windows, mc, share[r], n_curr, rngs[r], batches[r], &routes);
                 replica[r]->params->zero_grad();
                 losses[r] = diffusion_loss(*replica[r], schedule, batches[r], share[r], rngs[r], true, spaces[r]);
             } catch (const std::exception& e) {

@@ -257,9 +257,13 @@ TEST_CASE("planner: plans every agent, rejects bad input") {
     DiffusionPlanner again(MadbpModel(c, 1), 7);
     Plan p2 = again.plan(w);
     CHECK(p2.waypoints[2][3].x == p.waypoints[2][3].x);
-    // More agents than n_max.
+    // More agents than n_max: neighbourhoods of n_max by default; one scene of them all is refused.
     World crowded = make_random_world("empty", 5, 3);
-    CHECK_THROWS_AS(planner.plan(crowded), std::invalid_argument);
+    CHECK(planner.plan(crowded).ids.size() == 5);
+    CHECK(planner.last_scene_batch().B == 5);
+    planner.neighbours = 0;
+    CHECK_THROWS_WITH_AS(planner.plan(crowded), doctest::Contains("n_max"), std::invalid_argument);
+    planner.neighbours = -1;
     // A team of zero plans nothing.
     World none;
     CHECK(planner.plan(none).ids.empty());
@@ -364,12 +368,14 @@ TEST_CASE("planner: neighbourhood planning gives each agent the context of itsel
     for (int i = 0; i < 5; ++i) w.add_agent(starts[i], -starts[i]);
     // K >= n: the whole team in one scene, exactly the paper's planner.
     DiffusionPlanner whole(MadbpModel(c, 5), 11), wide(MadbpModel(c, 5), 11);
+    whole.neighbours = 0;
     wide.neighbours = 5;
     Plan a = whole.plan(w), b = wide.plan(w);
     CHECK(a.waypoints[3][2].x == b.waypoints[3][2].x);
     // K = 2: agent i is planned in a scene of itself (slot 0) and its nearest agent (slot 1).
     DiffusionPlanner local(MadbpModel(c, 5), 11);
     local.neighbours = 2;
+    local.sensing_radius = 10;  // every nearest agent counts, however far (agent 4's is 1.8 away)
     Plan p = local.plan(w);
     REQUIRE(p.ids.size() == 5);
     for (size_t i = 0; i < 5; ++i) {
@@ -392,6 +398,11 @@ TEST_CASE("planner: neighbourhood planning gives each agent the context of itsel
     World crowd = make_random_world("empty", 8, 4);
     CHECK(local.plan(crowd).ids.size() == 8);
     CHECK_THROWS_AS(whole.plan(crowd), std::invalid_argument);
-    local.neighbours = -1;
+    // Within the default sensing radius (position_scale = 1.2) agent 4 has no neighbour: a scene of one.
+    local.sensing_radius = 0;
+    local.plan(w);
+    CHECK(local.last_scene_batch().count[4] == 1);
+    CHECK(local.last_scene_batch().count[0] == 2);
+    local.neighbours = -2;
     CHECK_THROWS_AS(local.plan(w), std::invalid_argument);
 }

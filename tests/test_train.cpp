@@ -330,8 +330,13 @@ TEST_CASE("training: two data-parallel replicas are deterministic and resume exa
 }
 
 TEST_CASE("train: training and planning encode the same state identically (one encoder)") {
-    // One scene: three robots on the barrier map, planned once with a small random model.
-    const ModelConfig c = tiny_config();
+  for (SceneFrame frame : {SceneFrame::World, SceneFrame::Local}) {
+    CAPTURE((int)frame);
+    // One scene: three robots on the barrier map, planned once with a small random model; in
+    // the Local frame with route subgoals (the barrier is in the way of most goals).
+    ModelConfig c = tiny_config();
+    c.frame = frame;
+    c.subgoal_distance = frame == SceneFrame::Local ? 0.8f : 0.0f;
     World world = make_random_world("barrier", 3, 5);
     DiffusionPlanner planner(MadbpModel(c, 1));
     planner.plan(world);
@@ -354,6 +359,7 @@ TEST_CASE("train: training and planning encode the same state identically (one e
     make_train_batch(demos, {{0, 0}}, c, tc, 3, rng, tb);
     const SceneBatch& trained = tb.scene;
     REQUIRE(trained.n == planned.n);
+    CHECK(trained.origin == planned.origin);
     CHECK(trained.grid == planned.grid);
     const long Gl2 = (long)c.local_grid * c.local_grid;
     const float reach = default_goal_reach(c);
@@ -363,6 +369,7 @@ TEST_CASE("train: training and planning encode the same state identically (one e
             if (trained.pose.col(a) != planned.pose.col(b)) continue;
             ++matched;
             CHECK(trained.agent_mask[a] == planned.agent_mask[b]);
+            CHECK(trained.goal_final[a] == planned.goal_final[b]);
             CHECK(trained.local.middleCols(a * Gl2, Gl2) == planned.local.middleCols(b * Gl2, Gl2));
             const bool pinned = tb.pinned[(size_t)a * c.horizon + c.horizon - 1] != 0;
             CHECK(pinned == end_pinned(planned, b, c, reach));
@@ -370,4 +377,6 @@ TEST_CASE("train: training and planning encode the same state identically (one e
     CHECK(matched == 3);
     // Training draws PE_agent slots at random (distinct); planning numbers them in order.
     CHECK(trained.slot[0] != trained.slot[1]);
+    if (frame == SceneFrame::Local) CHECK(std::count(trained.goal_final.begin(), trained.goal_final.end(), 0.0f) > 0);  // subgoals were used
+  }
 }

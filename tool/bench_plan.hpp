@@ -1,6 +1,7 @@
-// bench_plan.hpp - `madbp bench --plan`: wall time per window plan against team size and the
-// sampler's arithmetic rate as a share of the same run's Eigen matrix-product rate (SPEC 9 speed
-// targets). Heap allocations per plan are counted by build/bench_alloc (tool/bench_alloc.cpp),
+// bench_plan.hpp - `madbp bench --plan`: wall time per window plan against team size, beside the
+// guided expert's plan time on the same worlds, one robot's own plan (plan_robot), and the
+// sampler's arithmetic rate as a share of the same run's Eigen matrix-product rate (SPEC 9 and
+// issue 13 speed targets). Heap allocations per plan are counted by build/bench_alloc (tool/bench_alloc.cpp),
 // which replaces malloc: the shipped tool does not.
 #pragma once
 #include <chrono>
@@ -59,7 +60,7 @@ inline double eigen_gemm_rate(int m, int kdim, int n) {
 
 inline int bench_plan(Args& a) {
     std::string model_path = a.str("--model", "");
-    std::vector<long> teams = a.integers("--agents", "1,2,4,8,16,32", 1, 1024);
+    std::vector<long> teams = a.integers("--agents", "1,2,4,8,16,32,64", 1, 1024);
     int plans = (int)a.integer("--plans", 50, 1, 1000000);
     int steps = (int)a.integer("--sample-steps", 0, 0, 1000);
     uint64_t seed = (uint64_t)a.integer("--seed", 0, 0);
@@ -75,32 +76,57 @@ inline int bench_plan(Args& a) {
     const double gemm = eigen_gemm_rate(config.channels[0], config.dim * config.kernel, config.horizon * 8);
     if (!json)
         std::printf("plan bench: %s, S = %d, guidance %g, candidates %d, one thread; Eigen GEMM %dx%d * %dx%d: %.1f GFLOP/s\n"
-                    "%4s %10s %10s %8s\n",
+                    "random empty worlds: half-size 1.2 up to 8 robots, 2.4 up to 32, 3.4 beyond; scenes x robots\n"
+                    "per scene as the planner chose (automatic neighbourhoods); expert: the guided expert's ms per plan\n"
+                    "%4s %6s %10s %10s %10s %8s\n",
                     model_path.empty() ? "default config (random weights: time does not depend on them)" : model_path.c_str(), S, guidance, candidates,
                     config.channels[0], config.dim * config.kernel, config.dim * config.kernel, config.horizon * 8, gemm, "n",
-                    "ms/plan", "GFLOP/s", "of GEMM");
+                    "scenes", "ms/plan", "expert_ms", "GFLOP/s", "of GEMM");
+    double robot_ms = 0;
+    int robot_K = 0;
     for (long n : teams) {
-        if (n > config.n_max) throw std::invalid_argument("--agents: " + std::to_string(n) + " exceeds the model's n_max " + std::to_string(config.n_max));
         madbp::MadbpModel model = model_path.empty() ? madbp::MadbpModel(config, seed) : madbp::load_model(model_path);
         madbp::DiffusionPlanner planner(std::move(model), seed);
         planner.sampler.sample_steps = S;
         planner.sampler.guidance = (float)guidance;
         planner.sampler.candidates = candidates;
         // Larger teams need a larger world to spawn in (starts and goals 0.25 apart).
-        madbp::World world = madbp::make_random_world("empty", (int)n, seed, n > 16 ? 2.4 : 1.2);
+        madbp::World world = madbp::make_random_world("empty", (int)n, seed, n > 32 ? 3.4 : n > 8 ? 2.4 : 1.2);
         madbp::Plan plan;
         for (int i = 0; i < 3; ++i) planner.plan_into(world, plan);  // warm-up: workspaces take their sizes
         auto t0 = std::chrono::steady_clock::now();
         for (int i = 0; i < plans; ++i) planner.plan_into(world, plan);
         const double secs = std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count();
-        const double ms = 1000 * secs / plans, rate = plan_flops(config, (int)n * candidates, S) / (secs / plans) / 1e9;
+        const madbp::SceneBatch& sb = planner.last_scene_batch();
+        const double ms = 1000 * secs / plans, rate = plan_flops(config, sb.n, S) * sb.B * candidates / (secs / plans) / 1e9;
+        // The guided expert on the same world: mean ms per plan over `plans` / 5 plans (at least 3).
+        madbp::GuidedExpert expert(world.map());
+        madbp::World ew = world;
+        const int expert_plans = std::max(3, plans / 5);
+        for (int i = 0; i < expert_plans * madbp::ExpertParams{}.replan_every && !ew.done(); ++i) ew.step(expert.act(ew));
+        const double expert_ms = expert.decision_ms();
+        if (sb.B > 1 && robot_K == 0) {  // one robot's own scene (plan_robot), from the first team planned in neighbourhoods
+            std::vector<madbp::DiffusionPlanner::Neighbour> others;
+            for (int j = 1; j < world.size(); ++j) others.push_back({world.agents()[j].pos, world.agents()[j].goal});
+            std::vector<madbp::Vec2> window;
+            const madbp::Agent& me = world.agents()[0];
+            for (int i = 0; i < 3; ++i) planner.plan_robot(world.map(), me.id, me.pos, me.goal, others, window);
+            auto r0 = std::chrono::steady_clock::now();
+            for (int i = 0; i < plans; ++i) planner.plan_robot(world.map(), me.id, me.pos, me.goal, others, window);
+            robot_ms = 1000 * std::chrono::duration<double>(std::chrono::steady_clock::now() - r0).count() / plans;
+            robot_K = sb.n;
+        }
         if (json)
-            std::printf("%s\n", Json().add("bench", "plan").add("agents", n).add("sample_steps", S).add("guidance", guidance)
-                                    .add("candidates", candidates).add("ms_per_plan", ms)
+            std::printf("%s\n", Json().add("bench", "plan").add("agents", n).add("scenes", sb.B).add("per_scene", sb.n).add("sample_steps", S)
+                                    .add("guidance", guidance).add("candidates", candidates).add("ms_per_plan", ms).add("expert_ms_per_plan", expert_ms)
                                     .add("gflops", rate).add("gemm_gflops", gemm).add("share_of_gemm", rate / gemm).line().c_str());
         else
-            std::printf("%4ld %10.3f %10.1f %7.0f%%\n", n, ms, rate, 100 * rate / gemm);
+            std::printf("%4ld %3dx%-2d %10.3f %10.3f %10.1f %7.0f%%\n", n, sb.B, sb.n, ms, expert_ms, rate, 100 * rate / gemm);
         std::fflush(stdout);
+    }
+    if (robot_K > 0) {
+        if (json) std::printf("%s\n", Json().add("bench", "plan_robot").add("per_scene", robot_K).add("ms_per_plan", robot_ms).line().c_str());
+        else std::printf("one robot's own plan (plan_robot, a scene of K = %d): %.3f ms\n", robot_K, robot_ms);
     }
     return 0;
 }

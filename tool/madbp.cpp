@@ -35,6 +35,10 @@ std::string fixed(double v, int prec) {
     return b;
 }
 
+// The default episode step limit: 100 steps in the standard world (half-size 1.2), scaled with
+// the world's side, since crossing it takes proportionally longer.
+int default_max_steps(double half_size) { return (int)std::ceil(100 * half_size / 1.2 - 1e-9); }
+
 // --scenario NAME (an interaction scene generator), checked; not with --scene.
 std::string read_scenario(Args& a, const std::string& scene_path) {
     std::string name = a.str("--scenario", "");
@@ -65,7 +69,7 @@ int cmd_eval(Args& a) {
             "  --replan M        steps executed per plan (default 8)\n"
             "  --threads T       episodes in parallel (default 1; results do not depend on it)\n"
             "  --half-size H     half-size of random worlds (default 1.2; 2.4 = twice the side; at most 100)\n"
-            "  --max-steps N     episode step limit (default 100)\n"
+            "  --max-steps N     episode step limit (default 100 x half-size / 1.2, of the scene's world with --scene)\n"
             "  --json            one JSON object per cell instead of the table\n"
             "  --suite paper     every table and figure of the paper plus ours (--suite paper --help)\n"
             "Columns: method, map, n_train, n, episodes, success, success_se, collisions (per\n"
@@ -87,7 +91,7 @@ int cmd_eval(Args& a) {
     setup.replan = (int)a.integer("--replan", 8, 1, 1000);
     int threads = (int)a.integer("--threads", 1, 1, 256);
     double half_size = a.real("--half-size", 1.2, 0.6, madbp::kMaxHalfSize);
-    int max_steps = (int)a.integer("--max-steps", 100, 1, 1000000);
+    int max_steps = (int)a.integer("--max-steps", 0, 1, 1000000);  // 0: default_max_steps
     auto all = methods();
     const Method& method = find_method(all, method_name);
     madbp::Scene scene;
@@ -96,7 +100,9 @@ int cmd_eval(Args& a) {
         scene = madbp::load_scene(scene_path);
         maps = {"scene"};
         counts = {(long)scene.starts.size()};
+        half_size = scene.map.half_size;
     }
+    if (max_steps == 0) max_steps = default_max_steps(half_size);
     for (auto& m : maps) {  // validate names before any long run
         madbp::Rng probe(0);
         if (m != "scene") madbp::make_map(m, probe);
@@ -192,7 +198,7 @@ int cmd_render(Args& a) {
             "  --out FILE     output (default episode.svg)\n"
             "  --animate      an animated SVG that plays the episode\n"
             "  --no-filter, --replan M, --half-size H   as for eval\n"
-            "  --max-steps N  episode step limit (default 100, at most 10000: every frame is drawn)\n"
+            "  --max-steps N  episode step limit (default 100 x half-size / 1.2, at most 10000: every frame is drawn)\n"
             "  --json         print the result as JSON\n",
             method_list().c_str());
         return 0;
@@ -209,14 +215,16 @@ int cmd_render(Args& a) {
     std::string scenario = read_scenario(a, scene_path);
     bool animate = a.flag("--animate"), json = a.flag("--json");
     double half_size = a.real("--half-size", 1.2, 0.6, madbp::kMaxHalfSize);
-    int max_steps = (int)a.integer("--max-steps", 100, 1, kMaxRenderSteps);
+    int max_steps = (int)a.integer("--max-steps", 0, 1, kMaxRenderSteps);  // 0: default_max_steps
     madbp::Scene scene;
     refuse_scene_overrides(a, scene_path);
     if (!scene_path.empty()) {
         scene = madbp::load_scene(scene_path);
         setup.map = "scene";
         setup.agents = (int)scene.starts.size();
+        half_size = scene.map.half_size;
     }
+    if (max_steps == 0) max_steps = std::min(default_max_steps(half_size), kMaxRenderSteps);
     return render_episode(method, a, setup, scene_path.empty() ? nullptr : &scene, seed, out, animate, json, half_size, max_steps, scenario);
 }
 

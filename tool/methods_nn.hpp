@@ -16,7 +16,7 @@ struct PlannerOptions {
     int sample_steps = 0;      // 0: the model's default
     bool goal_inpaint = true;
     double goal_reach = -1;    // < 0: the model's default_goal_reach
-    int neighbours = 0;        // > 0: neighbourhood planning (DiffusionPlanner::neighbours)
+    int neighbours = -1;       // DiffusionPlanner::neighbours (-1: automatic)
     double guidance = 0;       // SamplerConfig::guidance (0: off)
     int candidates = 1;        // SamplerConfig::candidates (1: off)
     madbp::WindowCost cost;    // SamplerConfig::cost
@@ -40,7 +40,7 @@ inline PlannerOptions read_planner_options(Args& a) {
     o.sample_steps = (int)a.integer("--sample-steps", 0, 0, 1000);
     o.goal_inpaint = !a.flag("--no-goal-inpaint");
     o.goal_reach = a.real("--goal-reach", -1, 0, 100);  // a negative value is an error, not the default
-    o.neighbours = (int)a.integer("--neighbours", 0, 0, 1024);
+    o.neighbours = (int)a.integer("--neighbours", -1, -1, 1024);
     o.guidance = a.real("--guidance", 0, 0, 1e6);
     o.candidates = (int)a.integer("--candidates", 1, 1, madbp::kMaxCandidates);
     read_cost_weights(a.str("--cost-weights", ""), o.cost);
@@ -54,10 +54,7 @@ inline MethodSpec madbp_method(const PlannerOptions& o, const MethodSetup& s) {
     // One thread per plan (SPEC 9 measures one core); eval --threads runs episodes in parallel.
     madbp::set_num_threads(1);
     auto shared = std::make_shared<madbp::MadbpModel>(madbp::load_model(o.model_path));
-    madbp::SafeTensors st = madbp::load_safetensors(o.model_path);
-    int n_train = -1;
-    auto it = st.metadata.find("train.n_train_max");
-    if (it != st.metadata.end()) n_train = std::atoi(it->second.c_str());
+    const int n_train = shared->config.n_train_max > 0 ? shared->config.n_train_max : -1;
     if (o.sample_steps > shared->config.diffusion_steps)
         throw std::invalid_argument("--sample-steps: must be <= the model's diffusion steps (" + std::to_string(shared->config.diffusion_steps) + ")");
     madbp::FollowerConfig fc;
@@ -84,7 +81,9 @@ inline void register_nn_methods(std::vector<Method>& m) {
                  "MA-DBP diffusion planner + tracker (+ safety filter) (SPEC 5-8); --model FILE\n"
                  "                    (default models/madbp-default.safetensors), --sample-steps S,\n"
                  "                    --no-goal-inpaint, --goal-reach R (world units; default 0.55),\n"
-                 "                    --neighbours K (each agent plans with its K-1 nearest; 0 = whole team),\n"
+                 "                    --neighbours K (each robot plans with its K-1 nearest; 0 = whole team;\n"
+                 "                    default: K = the model's n_train_max when the team or the world is larger\n"
+                 "                    than in training, else the whole team),\n"
                  "                    conflict-aware sampling (issue 12; default off): --guidance W (each DDIM\n"
                  "                    step moves x0_hat's waypoints by -W * d cost / d waypoint), --candidates K\n"
                  "                    (best of K windows per scene), --cost-weights A,M,G (robot-robot, robot-map,\n"
@@ -198,6 +197,10 @@ inline int cmd_train(Args& a) {
             "  --processor AAP|LE --window MW|CT --prediction x0|eps --local-grid G (0: off)\n"
             "  --window-scale W --waypoint-stride K   model configuration (SPEC 5; defaults in docs/design.md;\n"
             "                     window scale default min(2.4, 0.6 (H-1) stride / 15))\n"
+            "  --frame world|local  scene coordinates: from the world's centre (paper) or from each scene's\n"
+            "                     centre with a grid cropped around it, for any world size (default local)\n"
+            "  --subgoal D        a goal farther than D world units, or out of view, is shown D away in the\n"
+            "                     direction of the route around the map; 0 = off (default 1.5)\n"
             "  --checkpoint-every N (default 1000)   --seed S (default 0)\n"
             "  --threads T        data-parallel replicas (default 2); results depend on T, not on the machine\n"
             "  --json             print the final losses as JSON\n");
@@ -252,6 +255,11 @@ inline int cmd_train(Args& a) {
     if (win != "MW" && win != "CT") throw std::invalid_argument("--window: expected MW or CT, got '" + win + "'");
     mc.processor = proc == "AAP" ? madbp::Processor::AAP : madbp::Processor::LE;
     mc.window = win == "MW" ? madbp::WindowMode::MW : madbp::WindowMode::CT;
+    std::string frame = a.str("--frame", "local");
+    if (frame != "world" && frame != "local") throw std::invalid_argument("--frame: expected world or local, got '" + frame + "'");
+    mc.frame = frame == "local" ? madbp::SceneFrame::Local : madbp::SceneFrame::World;
+    mc.subgoal_distance = (float)a.real("--subgoal", 1.5, 0, 100);
+    mc.n_train_max = std::min(tc.n_train_max, mc.n_max);
     int threads = (int)a.integer("--threads", 2, 1, 256);
     bool json = a.flag("--json");
     a.finish();

@@ -1,0 +1,235 @@
+// Deploy large (issue 13): the Local scene frame, route subgoals, automatic neighbourhood
+// planning and the decentralised per-robot plan (madbp.hpp "model inputs" and DiffusionPlanner;
+// RouteGuide in madbp_sim.hpp Section 12).
+#include <doctest/doctest.h>
+
+#include "madbp_train.hpp"
+#include "tiny_model.hpp"
+
+using namespace madbp;
+
+namespace {
+
+ModelConfig local_config() {
+    ModelConfig c = tiny_config();
+    c.frame = SceneFrame::Local;
+    c.subgoal_distance = 0.8f;
+    c.n_train_max = 3;
+    return c;
+}
+
+// A world of half-size 3.4 with a few obstacles and robots around `shift`, everything (but the
+// walls, far away) moved by `shift`.
+World shifted_world(Vec2 shift) {
+    WorldMap map;
+    map.half_size = 3.4;
+    map.discs.push_back({Vec2{0.31, -0.17} + shift, 0.15});  // off the crops' cell lines
+    map.boxes.push_back({Vec2{-0.63, 0.33} + shift, Vec2{-0.21, 0.41} + shift});
+    World w(map);
+    const Vec2 starts[5] = {{-0.53, -0.47}, {0.51, 0.49}, {0.03, 0.91}, {-0.89, 0.02}, {0.83, -0.71}};
+    const Vec2 goals[5] = {{0.61, 0.58}, {-0.62, -0.57}, {0.01, -0.93}, {1.52, 0.23}, {-0.81, 0.79}};
+    for (int i = 0; i < 5; ++i) w.add_agent(starts[i] + shift, goals[i] + shift);
+    return w;
+}
+
+}  // namespace
+
+TEST_CASE("large: a scene in the Local frame encodes the same when the whole world is translated") {
+    ModelConfig c = local_config();
+    c.subgoal_distance = 0;  // route subgoals sit on the route grid's cells, which do not move (below)
+    const Vec2 shift{1.25, -0.75};  // exact in binary: positions stay exact after the shift
+    World a = shifted_world({0, 0}), b = shifted_world(shift);
+    DiffusionPlanner pa(MadbpModel(c, 3), 11), pb(MadbpModel(c, 3), 11);
+    const Plan plan_a = pa.plan(a), plan_b = pb.plan(b);
+    const SceneBatch &sa = pa.last_scene_batch(), &sb = pb.last_scene_batch();
+    REQUIRE(sa.B == 5);  // 5 robots > n_train_max = 3: a scene per robot
+    REQUIRE(sa.n == 3);
+    for (int s = 0; s < sa.B; ++s) {
+        CHECK(sb.origin[s].x == doctest::Approx(sa.origin[s].x + shift.x));
+        CHECK(sb.origin[s].y == doctest::Approx(sa.origin[s].y + shift.y));
+    }
+    CHECK(sa.grid == sb.grid);
+    CHECK(sa.local == sb.local);
+    CHECK(sa.agent_mask == sb.agent_mask);
+    CHECK(sa.goal_final == sb.goal_final);
+    CHECK((sa.pose - sb.pose).cwiseAbs().maxCoeff() < 1e-5f);
+    // The same draw: every window is the same motion, moved by `shift`.
+    for (int i = 0; i < 5; ++i)
+        for (size_t t = 0; t < plan_a.waypoints[i].size(); ++t) {
+            CHECK(plan_b.waypoints[i][t].x == doctest::Approx(plan_a.waypoints[i][t].x + shift.x).epsilon(1e-4));
+            CHECK(plan_b.waypoints[i][t].y == doctest::Approx(plan_a.waypoints[i][t].y + shift.y).epsilon(1e-4));
+        }
+    // The World frame is not translation-invariant: positions are from the world's centre.
+    ModelConfig w = c;
+    w.frame = SceneFrame::World;
+    DiffusionPlanner qa(MadbpModel(w, 3), 11), qb(MadbpModel(w, 3), 11);
+    qa.plan(a);
+    qb.plan(b);
+    CHECK((qa.last_scene_batch().pose - qb.last_scene_batch().pose).cwiseAbs().maxCoeff() > 0.5f);
+    // With route subgoals the goals move with the world up to the route grid's cell.
+    ModelConfig r = local_config();
+    DiffusionPlanner ra(MadbpModel(r, 3), 11), rb(MadbpModel(r, 3), 11);
+    ra.plan(a);
+    rb.plan(b);
+    CHECK(ra.last_scene_batch().grid == rb.last_scene_batch().grid);
+    CHECK((ra.last_scene_batch().pose - rb.last_scene_batch().pose).cwiseAbs().maxCoeff() < 1.5 * RouteGuide{}.cell / r.position_scale);
+}
+
+TEST_CASE("large: route subgoals lie on a collision-free way to the goal and within reach") {
+    RouteGuide guide;
+    int far = 0;
+    for (uint64_t seed = 0; seed < 40; ++seed) {
+        World w = make_random_world(seed % 2 ? "barrier" : "obstacles", 1, seed, seed % 4 < 2 ? 1.2 : 2.4);
+        const WorldMap& map = w.map();
+        Vec2 p = w.agents()[0].pos;
+        const Vec2 goal = w.agents()[0].goal;
+        const double D = 0.8;
+        // Hop from subgoal to subgoal: each hop is a straight segment clear of the map by the
+        // robot's radius and at most D (plus a cell) long, and the hops arrive at the goal.
+        int hops = 0;
+        for (; hops < 100; ++hops) {
+            const RouteGoal r = guide.subgoal(map, p, goal, D);
+            CHECK(norm(r.goal - p) <= D + 1.5 * guide.grid().cell);
+            // (visibility is checked every half cell: between two checks the clearance may dip a little)
+            for (int k = 0; k <= 50; ++k) CHECK(static_clearance(map, p + (r.goal - p) * (k / 50.0)) >= guide.view_clear - 0.01);
+            if (r.final) {
+                CHECK(r.goal == goal);
+                break;
+            }
+            CHECK(norm(r.goal - p) > 0.05);  // progress
+            p = r.goal;
+        }
+        CHECK(hops < 100);
+        far += hops > 0;
+    }
+    CHECK(far > 20);  // most goals were beyond one subgoal
+    // What the model is shown (route_goal): a goal behind a wall is shown D away toward the gap.
+    WorldMap wall;
+    wall.boxes.push_back({Vec2{-1.2, -0.05}, Vec2{0.2, 0.05}});
+    wall.boxes.push_back({Vec2{0.7, -0.05}, Vec2{1.2, 0.05}});
+    ModelConfig rc = local_config();
+    rc.subgoal_distance = 1.5f;
+    const Vec2 start{-0.6, -0.6};
+    const RouteGoal hidden = route_goal(guide, rc, wall, start, {-0.6, 0.6});  // 1.2 away, behind the wall
+    CHECK_FALSE(hidden.final);
+    CHECK(norm(hidden.goal - start) == doctest::Approx(1.5));
+    CHECK(hidden.goal.x - start.x > 0.5 * (hidden.goal.y - start.y));  // toward the gap at x in (0.2, 0.7)
+    const RouteGoal seen = route_goal(guide, rc, wall, start, {0.3, -0.5});  // 0.9 away, in view
+    CHECK(seen.final);
+    CHECK(seen.goal == Vec2{0.3, -0.5});
+    const RouteGoal far_seen = route_goal(guide, rc, WorldMap{}, {-1, -1}, {1, 1});  // in view but 2.8 away
+    CHECK_FALSE(far_seen.final);
+    CHECK(far_seen.goal.x == doctest::Approx(-1 + 1.5 / std::sqrt(2.0)).epsilon(0.05));
+    // A goal within reach and in view is the goal itself; no subgoal model, no subgoals.
+    CHECK(guide.subgoal(WorldMap{}, {0, 0}, {0.5, 0.2}, 0.8).final);
+    ModelConfig c = tiny_config();
+    const RouteGoal r = route_goal(guide, c, WorldMap{}, {-1, -1}, {1, 1});
+    CHECK(r.final);
+    CHECK(r.goal == Vec2{1, 1});
+    CHECK_THROWS_WITH_AS(guide.subgoal(WorldMap{}, {0, 0}, {1, 0}, 0), doctest::Contains("distance"), std::invalid_argument);
+}
+
+TEST_CASE("large: automatic neighbourhood planning exactly when the team or the world is larger than in training") {
+    ModelConfig c = local_config();  // n_train_max 3, n_max 6, trained in half-size 1.2
+    DiffusionPlanner p(MadbpModel(c, 1));
+    CHECK(p.neighbours == -1);
+    CHECK(p.neighbourhood(3, 1.2) == 3);  // as trained: one scene of the team
+    CHECK(p.neighbourhood(1, 1.2) == 1);
+    CHECK(p.neighbourhood(4, 1.2) == 3);  // larger team: scenes of K = n_train_max
+    CHECK(p.neighbourhood(2, 2.4) == 2);  // larger world: a scene per robot, of the robots in range (at most K)
+    {
+        World w = make_random_world("empty", 2, 0, 2.4);
+        p.plan(w);
+        CHECK(p.last_scene_batch().B == 2);
+    }
+    {
+        World w = make_random_world("empty", 3, 0);
+        p.plan(w);
+        CHECK(p.last_scene_batch().B == 1);
+        CHECK(p.last_scene_batch().n == 3);
+    }
+    {
+        World w = make_random_world("empty", 5, 0);
+        p.plan(w);
+        CHECK(p.last_scene_batch().B == 5);
+        CHECK(p.last_scene_batch().n == 3);
+    }
+    p.neighbours = 0;  // asked for: the whole team
+    CHECK(p.neighbourhood(5, 2.4) == 5);
+    p.neighbours = 2;
+    CHECK(p.neighbourhood(5, 1.2) == 2);
+    p.neighbours = -2;
+    CHECK_THROWS_WITH_AS(p.neighbourhood(5, 1.2), doctest::Contains("neighbours"), std::invalid_argument);
+    // Unknown n_train_max (an older checkpoint): K = n_max.
+    ModelConfig old = tiny_config();
+    DiffusionPlanner q(MadbpModel(old, 1));
+    CHECK(q.neighbourhood(6, 1.2) == 6);
+    CHECK(q.neighbourhood(7, 1.2) == 6);
+}
+
+TEST_CASE("large: the new model fields round-trip through checkpoints; a 0.1 checkpoint reads as the World frame") {
+    const ModelConfig c = local_config();
+    const std::string path = "test_large_model.safetensors";
+    save_model(path, MadbpModel(c, 1));
+    const ModelConfig back = load_model(path).config;
+    CHECK(back.frame == SceneFrame::Local);
+    CHECK(back.subgoal_distance == doctest::Approx(0.8));
+    CHECK(back.n_train_max == 3);
+    auto md = c.to_metadata();
+    md.erase("frame");
+    md.erase("subgoal_distance");
+    md.erase("train.n_train_max");
+    const ModelConfig old = ModelConfig::from_metadata(md, "old");
+    CHECK(old.frame == SceneFrame::World);
+    CHECK(old.subgoal_distance == 0);
+    CHECK(old.n_train_max == 0);
+    md["frame"] = "polar";
+    CHECK_THROWS_WITH_AS(ModelConfig::from_metadata(md, "bad"), doctest::Contains("'frame'"), std::runtime_error);
+    std::remove(path.c_str());
+}
+
+TEST_CASE("large: a robot planning for itself gets the window the team plan gives it (same seed)") {
+    const ModelConfig c = local_config();
+    World world = make_random_world("obstacles", 5, 4, 2.4);
+    for (bool conflict_aware : {false, true}) {
+        DiffusionPlanner team(MadbpModel(c, 2), 9);
+        if (conflict_aware) team.sampler.guidance = 0.004f, team.sampler.candidates = 2;
+        const Plan plan = team.plan(world);
+        for (int i = 0; i < world.size(); ++i) {
+            DiffusionPlanner robot(MadbpModel(c, 2), 9);
+            robot.sampler = team.sampler;
+            std::vector<DiffusionPlanner::Neighbour> others;
+            for (int j = 0; j < world.size(); ++j)
+                if (j != i) others.push_back({world.agents()[j].pos, world.agents()[j].goal});
+            std::vector<Vec2> window;
+            const Agent& me = world.agents()[i];
+            robot.plan_robot(world.map(), me.id, me.pos, me.goal, others, window);
+            REQUIRE(window.size() == plan.waypoints[i].size());
+            double worst = 0;
+            for (size_t t = 0; t < window.size(); ++t) worst = std::max(worst, norm(window[t] - plan.waypoints[i][t]));
+            CHECK(worst < 1e-4);  // one scene alone vs in a batch: the same numbers up to float summation order
+        }
+    }
+    DiffusionPlanner robot(MadbpModel(c, 2), 9);
+    std::vector<Vec2> window;
+    CHECK_THROWS_WITH_AS(robot.plan_robot(world.map(), 0, {0, 0}, {1, 1}, {{Vec2{NAN, 0}, Vec2{0, 0}}}, window),
+                         doctest::Contains("neighbour 0"), std::invalid_argument);
+}
+
+TEST_CASE("large: circle swaps of up to kMaxCircleAgents robots are valid scenes") {
+    for (int n : {8, 12, 16})
+        for (uint64_t seed = 0; seed < 5; ++seed) {
+            const double half = n > 12 ? 2.4 : 1.2;
+            World w = make_interaction_world("circle", "empty", n, seed, half);
+            REQUIRE(w.size() == n);
+            const Vec2 centre = (w.agents()[0].pos + w.agents()[0].goal) * 0.5;
+            for (int i = 0; i < n; ++i) {
+                const Agent& a = w.agents()[i];
+                CHECK(norm((a.pos + a.goal) * 0.5 - centre) < 1e-9);  // antipodal: every swap through one centre
+                CHECK(static_clearance(w.map(), a.pos) >= 0.16);
+                for (int j = i + 1; j < n; ++j) CHECK(norm(a.pos - w.agents()[j].pos) >= 0.25);
+            }
+        }
+    CHECK_THROWS_AS(make_interaction_world("circle", "empty", kMaxCircleAgents + 1, 0, 3.4), std::invalid_argument);
+    CHECK_THROWS_AS(make_interaction_world("swap", "empty", kMaxScenarioAgents + 1, 0), std::invalid_argument);
+}
