@@ -90,10 +90,12 @@ bench: all
 	$(BUILD)/bench_alloc
 
 # The shipped default model, reproducibly: expert demonstrations (3 maps, 1-4 robots, 500
-# episodes each), then 20,000 steps of training on 2 data-parallel replicas (~17 min on 2 cores).
-MODEL_FLAGS ?= --steps 20000 --batch 64 --threads 2 --seed 0
+# episodes each, 30% of them interaction scenes: swaps, crossings, gaps, corridors, parked robots,
+# circles), then 20,000 steps of training on 2 data-parallel replicas in the Local scene frame
+# with route subgoals 1.5 units ahead (~12 min on 2 cores; docs/experiments.md "Deploy large").
+MODEL_FLAGS ?= --steps 20000 --batch 64 --threads 2 --seed 0 --frame local --subgoal 1.5
 model: all
-	$(BUILD)/madbp collect --episodes 500 --threads 2 --seed 0 --out $(BUILD)/demos.bin
+	$(BUILD)/madbp collect --episodes 500 --threads 2 --seed 0 --scenarios all:0.3 --out $(BUILD)/demos.bin
 	$(BUILD)/madbp train --data $(BUILD)/demos.bin --out models/madbp-default.safetensors $(MODEL_FLAGS)
 	rm -f models/madbp-default.safetensors.train
 

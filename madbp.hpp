@@ -2657,6 +2657,9 @@ inline float predict_x0(float x_k, float eps, double alpha_bar) {
 
 // Largest SamplerConfig::candidates (the batch grows k-fold).
 constexpr int kMaxCandidates = 64;
+// The guidance DiffusionPlanner samples with (SamplerConfig::guidance; the bare sampler's default
+// is 0, plain DDIM): tuned on seeds 1000-1099 (docs/experiments.md).
+constexpr float kDefaultGuidance = 0.004f;
 
 // The map's clearance (static_clearance: distance to the nearest obstacle or wall surface,
 // world units, negative inside) sampled at the nodes of a square grid of spacing `cell` over the
@@ -2723,9 +2726,12 @@ struct MapFields {
         clearance.build(map);
         goals.clear();
     }
+    // The field of the goal at (x, y), matched within kGoalMatch: goals are decoded from a
+    // SceneBatch, whose Local frame moves with the robots, so the same goal differs in the last bits.
+    static constexpr double kGoalMatch = 1e-4;
     const GoalField* find(double x, double y) const {
         for (const GoalField& g : goals)
-            if (g.x == x && g.y == y) return &g;
+            if (std::abs(g.x - x) <= kGoalMatch && std::abs(g.y - y) <= kGoalMatch) return &g;
         return nullptr;
     }
     // Makes the goal fields of every active agent of `batch` that has none yet (real goals only:
@@ -3095,8 +3101,10 @@ public:
     // planning: each robot's window comes from its own scene of itself and its K-1 nearest
     // robots within sensing_radius (n scenes of <= K robots, sampled as one batch), so the model
     // never attends over more robots than it saw in training. -1 (default): automatic, K = the
-    // model's n_train_max (n_max when unknown), neighbourhoods when the team is larger than K or
-    // the world larger than the training world (half-size > position_scale).
+    // model's n_train_max (n_max when unknown), neighbourhoods when the world is larger than the
+    // training world (half-size > position_scale) or the team larger than n_max; a larger team
+    // in the training world plans as one scene, which measured better than neighbourhoods
+    // (docs/experiments.md, "Deploy large").
     int neighbours = -1;
     double sensing_radius = 0;  // world units; 0 = the model's position_scale (the training world's half-size)
 
@@ -3105,6 +3113,7 @@ public:
         model_.set_training(false);
         sampler.sample_steps = model_.config.sample_steps;
         sampler.goal_reach = default_goal_reach(model_.config);
+        sampler.guidance = kDefaultGuidance;
     }
     const ModelConfig& config() const { return model_.config; }
     MadbpModel& model() { return model_; }
@@ -3120,8 +3129,8 @@ public:
         if (neighbours < -1) throw std::invalid_argument("planner: neighbours must be -1 (automatic) or >= 0 (got " + std::to_string(neighbours) + ")");
         if (neighbours == 0) return n;
         if (neighbours > 0) return std::min(neighbours, n);
-        const int K = c.n_train_max > 0 ? c.n_train_max : c.n_max;
-        return std::min(K, n);  // (a larger world: scenes of every robot within sensing range, at most K)
+        if (half_size <= c.position_scale * (1 + 1e-9) && n <= c.n_max) return n;  // the training world: one scene
+        return std::min(c.n_train_max > 0 ? c.n_train_max : c.n_max, n);
     }
 
     // A window for all present agents of `world`: waypoints for steps t+1 .. t+(H-1)*stride

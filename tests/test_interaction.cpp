@@ -411,9 +411,11 @@ TEST_CASE("sampler: with guidance off and k = 1 it is today's sampler, bit for b
             CHECK(cw.fields.clearance.nodes == 0);  // the workspace is untouched
         }
     }
-    // The planner: a plan is the reference sampler's windows.
+    // The planner with guidance off (its default is kDefaultGuidance): a plan is the reference sampler's windows.
     ModelConfig c = tiny_config();
     DiffusionPlanner planner(MadbpModel(c, 4), 21);
+    CHECK(planner.sampler.guidance == kDefaultGuidance);
+    planner.sampler.guidance = 0;
     World world = make_random_world("barrier", 3, 6);
     const Plan p = planner.plan(world);
     MadbpModel copy(c, 4);

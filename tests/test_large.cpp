@@ -129,29 +129,31 @@ TEST_CASE("large: route subgoals lie on a collision-free way to the goal and wit
     CHECK_THROWS_WITH_AS(guide.subgoal(WorldMap{}, {0, 0}, {1, 0}, 0), doctest::Contains("distance"), std::invalid_argument);
 }
 
-TEST_CASE("large: automatic neighbourhood planning exactly when the team or the world is larger than in training") {
+TEST_CASE("large: automatic neighbourhood planning exactly when the world is larger than in training or the team than n_max") {
     ModelConfig c = local_config();  // n_train_max 3, n_max 6, trained in half-size 1.2
     DiffusionPlanner p(MadbpModel(c, 1));
     CHECK(p.neighbours == -1);
     CHECK(p.neighbourhood(3, 1.2) == 3);  // as trained: one scene of the team
     CHECK(p.neighbourhood(1, 1.2) == 1);
-    CHECK(p.neighbourhood(4, 1.2) == 3);  // larger team: scenes of K = n_train_max
-    CHECK(p.neighbourhood(2, 2.4) == 2);  // larger world: a scene per robot, of the robots in range (at most K)
+    CHECK(p.neighbourhood(5, 1.2) == 5);  // a larger team in the training world: still one scene
+    CHECK(p.neighbourhood(7, 1.2) == 3);  // more than n_max: scenes of K = n_train_max
+    CHECK(p.neighbourhood(2, 2.4) == 2);  // a larger world: a scene per robot, of the robots in range (at most K)
+    CHECK(p.neighbourhood(5, 2.4) == 3);
     {
         World w = make_random_world("empty", 2, 0, 2.4);
         p.plan(w);
         CHECK(p.last_scene_batch().B == 2);
     }
     {
-        World w = make_random_world("empty", 3, 0);
-        p.plan(w);
-        CHECK(p.last_scene_batch().B == 1);
-        CHECK(p.last_scene_batch().n == 3);
-    }
-    {
         World w = make_random_world("empty", 5, 0);
         p.plan(w);
-        CHECK(p.last_scene_batch().B == 5);
+        CHECK(p.last_scene_batch().B == 1);
+        CHECK(p.last_scene_batch().n == 5);
+    }
+    {
+        World w = make_random_world("empty", 7, 0);
+        p.plan(w);
+        CHECK(p.last_scene_batch().B == 7);
         CHECK(p.last_scene_batch().n == 3);
     }
     p.neighbours = 0;  // asked for: the whole team
@@ -165,6 +167,7 @@ TEST_CASE("large: automatic neighbourhood planning exactly when the team or the 
     DiffusionPlanner q(MadbpModel(old, 1));
     CHECK(q.neighbourhood(6, 1.2) == 6);
     CHECK(q.neighbourhood(7, 1.2) == 6);
+    CHECK(q.neighbourhood(4, 2.4) == 4);
 }
 
 TEST_CASE("large: the new model fields round-trip through checkpoints; a 0.1 checkpoint reads as the World frame") {

@@ -64,7 +64,7 @@ inline int bench_plan(Args& a) {
     int plans = (int)a.integer("--plans", 50, 1, 1000000);
     int steps = (int)a.integer("--sample-steps", 0, 0, 1000);
     uint64_t seed = (uint64_t)a.integer("--seed", 0, 0);
-    const double guidance = a.real("--guidance", 0, 0, 1e6);
+    const double guidance = a.real("--guidance", madbp::kDefaultGuidance, 0, 1e6);
     const int candidates = (int)a.integer("--candidates", 1, 1, madbp::kMaxCandidates);
     bool json = a.flag("--json");
     a.finish();

@@ -17,7 +17,7 @@ struct PlannerOptions {
     bool goal_inpaint = true;
     double goal_reach = -1;    // < 0: the model's default_goal_reach
     int neighbours = -1;       // DiffusionPlanner::neighbours (-1: automatic)
-    double guidance = 0;       // SamplerConfig::guidance (0: off)
+    double guidance = madbp::kDefaultGuidance;  // SamplerConfig::guidance (0: off)
     int candidates = 1;        // SamplerConfig::candidates (1: off)
     madbp::WindowCost cost;    // SamplerConfig::cost
 };
@@ -41,7 +41,7 @@ inline PlannerOptions read_planner_options(Args& a) {
     o.goal_inpaint = !a.flag("--no-goal-inpaint");
     o.goal_reach = a.real("--goal-reach", -1, 0, 100);  // a negative value is an error, not the default
     o.neighbours = (int)a.integer("--neighbours", -1, -1, 1024);
-    o.guidance = a.real("--guidance", 0, 0, 1e6);
+    o.guidance = a.real("--guidance", madbp::kDefaultGuidance, 0, 1e6);
     o.candidates = (int)a.integer("--candidates", 1, 1, madbp::kMaxCandidates);
     read_cost_weights(a.str("--cost-weights", ""), o.cost);
     o.cost.agent_margin = (float)a.real("--cost-margin", o.cost.agent_margin, 0, 10);
@@ -84,8 +84,8 @@ inline void register_nn_methods(std::vector<Method>& m) {
                  "                    --neighbours K (each robot plans with its K-1 nearest; 0 = whole team;\n"
                  "                    default: K = the model's n_train_max when the team or the world is larger\n"
                  "                    than in training, else the whole team),\n"
-                 "                    conflict-aware sampling (issue 12; default off): --guidance W (each DDIM\n"
-                 "                    step moves x0_hat's waypoints by -W * d cost / d waypoint), --candidates K\n"
+                 "                    conflict-aware sampling (issue 12): --guidance W (each DDIM step moves\n"
+                 "                    x0_hat's waypoints by -W * d cost / d waypoint; default 0.004, 0 = off), --candidates K\n"
                  "                    (best of K windows per scene), --cost-weights A,M,G (robot-robot, robot-map,\n"
                  "                    goal; default 100,100,200), --cost-margin M (robot-robot, default 0.05)",
                  [](Args& a, const MethodSetup& s) { return madbp_method(read_planner_options(a), s); }});
