@@ -3100,11 +3100,11 @@ public:
     // Who plans with whom. 0: the whole team in one scene (the paper's). K > 0: neighbourhood
     // planning: each robot's window comes from its own scene of itself and its K-1 nearest
     // robots within sensing_radius (n scenes of <= K robots, sampled as one batch), so the model
-    // never attends over more robots than it saw in training. -1 (default): automatic, K = the
-    // model's n_train_max (n_max when unknown), neighbourhoods when the world is larger than the
-    // training world (half-size > position_scale) or the team larger than n_max; a larger team
-    // in the training world plans as one scene, which measured better than neighbourhoods
-    // (docs/experiments.md, "Deploy large").
+    // never attends over more robots than it saw in training. -1 (default): automatic, K =
+    // ceil(1.5 n_train_max) (n_max when n_train_max is unknown; at most n_max), neighbourhoods
+    // when the world is larger than the training world (half-size > position_scale) or the team
+    // larger than n_max. A larger team in the training world plans as one scene, and K = 6 for a
+    // model trained on 4: both measured better (docs/experiments.md, "Deploy large").
     int neighbours = -1;
     double sensing_radius = 0;  // world units; 0 = the model's position_scale (the training world's half-size)
 
@@ -3130,7 +3130,7 @@ public:
         if (neighbours == 0) return n;
         if (neighbours > 0) return std::min(neighbours, n);
         if (half_size <= c.position_scale * (1 + 1e-9) && n <= c.n_max) return n;  // the training world: one scene
-        return std::min(c.n_train_max > 0 ? c.n_train_max : c.n_max, n);
+        return std::min({c.n_train_max > 0 ? (3 * c.n_train_max + 1) / 2 : c.n_max, c.n_max, n});
     }
 
     // A window for all present agents of `world`: waypoints for steps t+1 .. t+(H-1)*stride

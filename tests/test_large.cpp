@@ -42,8 +42,8 @@ TEST_CASE("large: a scene in the Local frame encodes the same when the whole wor
     DiffusionPlanner pa(MadbpModel(c, 3), 11), pb(MadbpModel(c, 3), 11);
     const Plan plan_a = pa.plan(a), plan_b = pb.plan(b);
     const SceneBatch &sa = pa.last_scene_batch(), &sb = pb.last_scene_batch();
-    REQUIRE(sa.B == 5);  // 5 robots > n_train_max = 3: a scene per robot
-    REQUIRE(sa.n == 3);
+    REQUIRE(sa.B == 5);  // a larger world: a scene per robot
+    REQUIRE(sa.n == 5);
     for (int s = 0; s < sa.B; ++s) {
         CHECK(sb.origin[s].x == doctest::Approx(sa.origin[s].x + shift.x));
         CHECK(sb.origin[s].y == doctest::Approx(sa.origin[s].y + shift.y));
@@ -130,15 +130,16 @@ TEST_CASE("large: route subgoals lie on a collision-free way to the goal and wit
 }
 
 TEST_CASE("large: automatic neighbourhood planning exactly when the world is larger than in training or the team than n_max") {
-    ModelConfig c = local_config();  // n_train_max 3, n_max 6, trained in half-size 1.2
+    ModelConfig c = local_config();  // n_train_max 3 (automatic K = 5), n_max 6, trained in half-size 1.2
     DiffusionPlanner p(MadbpModel(c, 1));
     CHECK(p.neighbours == -1);
     CHECK(p.neighbourhood(3, 1.2) == 3);  // as trained: one scene of the team
     CHECK(p.neighbourhood(1, 1.2) == 1);
     CHECK(p.neighbourhood(5, 1.2) == 5);  // a larger team in the training world: still one scene
-    CHECK(p.neighbourhood(7, 1.2) == 3);  // more than n_max: scenes of K = n_train_max
+    CHECK(p.neighbourhood(7, 1.2) == 5);  // more than n_max: scenes of K = ceil(1.5 n_train_max)
     CHECK(p.neighbourhood(2, 2.4) == 2);  // a larger world: a scene per robot, of the robots in range (at most K)
-    CHECK(p.neighbourhood(5, 2.4) == 3);
+    CHECK(p.neighbourhood(5, 2.4) == 5);
+    CHECK(p.neighbourhood(9, 2.4) == 5);
     {
         World w = make_random_world("empty", 2, 0, 2.4);
         p.plan(w);
@@ -154,7 +155,7 @@ TEST_CASE("large: automatic neighbourhood planning exactly when the world is lar
         World w = make_random_world("empty", 7, 0);
         p.plan(w);
         CHECK(p.last_scene_batch().B == 7);
-        CHECK(p.last_scene_batch().n == 3);
+        CHECK(p.last_scene_batch().n == 5);
     }
     p.neighbours = 0;  // asked for: the whole team
     CHECK(p.neighbourhood(5, 2.4) == 5);
