@@ -25,6 +25,9 @@
 //   madbp::DiffusionPlanner planner(madbp::load_model("models/madbp-default.safetensors"));
 //   madbp::PlanFollower follower([&](const madbp::World& w) { return planner.plan(w); });
 //   while (!world.done()) world.step(follower.act(world));   // replans every 8 steps
+// Worlds larger than the training world and teams larger than n_max plan in neighbourhoods by
+// themselves (DiffusionPlanner::neighbours). One robot planning for itself (decentralised):
+//   planner.plan_robot(map, my_id, my_pos, my_goal, others /* {pos, goal} received */, window);
 //
 // Use: the layers (SPEC 4)
 //   madbp::Rng rng(0);
@@ -61,16 +64,20 @@
 //     clip_grad_norm, Ema                                                              [4]
 //   2 checkpoints: NamedTensor, SafeTensors, parse/serialize_safetensors, write_file_atomic,
 //     save/load_safetensors, param_tensors, read_param_tensors, save/load_params       [11]
-//   3 model inputs: ModelConfig, SceneBatch, encode_map, encode_agent, end_pinned        [5]
+//   3 model inputs: ModelConfig (SceneFrame), SceneBatch, scene_origin, encode_map,
+//     route_goal, encode_agent, end_pinned                                              [5]
 //   4 model parts: ConvBlock, AgentAttention, FilmUNet, StepEmbedding, ContextEncoder,
 //     TrajectoryProcessor                                                              [5]
 //   5 the model: MadbpModel, save_model, load_model                                      [5, 11]
 //   6 diffusion: NoiseSchedule, SamplerConfig, sample_windows (DDIM with inpainting)      [6]
-//   7 planner: DiffusionPlanner                                                         [8]
+//   7 planner: DiffusionPlanner (plan, neighbourhoods, plan_robot)                       [8]
 //
 // Changelog
 //   0.2  one FilmUNet / ContextEncoder / TrajectoryProcessor; one world-to-model encoder;
 //        BatchNorm statistics in ParamStore::state; optimizer-state I/O moved to madbp_train.hpp.
+//        The Local scene frame, route subgoals and ModelConfig::n_train_max (new metadata, absent
+//        = the 0.1 behaviour); automatic neighbourhoods, plan_robot; the planner samples with
+//        guidance kDefaultGuidance.
 //   0.1  neural-network core, safetensors checkpoints, MA-DBP model, DDIM sampler, planner.
 
 #ifndef MADBP_HPP
@@ -3126,11 +3133,18 @@ public:
     // than the training world.
     int neighbourhood(int n, double half_size) const {
         const ModelConfig& c = model_.config;
-        if (neighbours < -1) throw std::invalid_argument("planner: neighbours must be -1 (automatic) or >= 0 (got " + std::to_string(neighbours) + ")");
+        const int K = neighbourhood_size();
         if (neighbours == 0) return n;
-        if (neighbours > 0) return std::min(neighbours, n);
-        if (half_size <= c.position_scale * (1 + 1e-9) && n <= c.n_max) return n;  // the training world: one scene
-        return std::min({c.n_train_max > 0 ? (3 * c.n_train_max + 1) / 2 : c.n_max, c.n_max, n});
+        if (neighbours < 0 && half_size <= c.position_scale * (1 + 1e-9) && n <= c.n_max) return n;  // the training world: one scene
+        return std::min(K, n);
+    }
+    // K, the robots of a neighbourhood scene: `neighbours`, or when automatic ceil(1.5 n_train_max)
+    // (n_max when n_train_max is unknown), at most n_max.
+    int neighbourhood_size() const {
+        const ModelConfig& c = model_.config;
+        if (neighbours < -1) throw std::invalid_argument("planner: neighbours must be -1 (automatic) or >= 0 (got " + std::to_string(neighbours) + ")");
+        if (neighbours >= 0) return neighbours;  // 0: the whole team
+        return std::min(c.n_train_max > 0 ? (3 * c.n_train_max + 1) / 2 : c.n_max, c.n_max);
     }
 
     // A window for all present agents of `world`: waypoints for steps t+1 .. t+(H-1)*stride
@@ -3181,7 +3195,7 @@ public:
                 throw std::invalid_argument(i ? "planner: neighbour " + std::to_string(i - 1) + " has a non-finite position or goal"
                                               : std::string("planner: the robot's position or goal is not finite"));
         }
-        const int K = neighbours == 0 ? n : neighbourhood(std::max(n, model_.config.n_max + 1), map.half_size);
+        const int K = neighbours == 0 ? n : std::min(neighbourhood_size(), n);
         pos_.resize(n);
         goal_.resize(n);
         ids_.resize(n);
