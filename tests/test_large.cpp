@@ -6,6 +6,8 @@
 #include "madbp_train.hpp"
 #include "tiny_model.hpp"
 
+#include "alloc_counter_api.hpp"
+
 using namespace madbp;
 
 namespace {
@@ -218,6 +220,20 @@ TEST_CASE("large: a robot planning for itself gets the window the team plan give
     std::vector<Vec2> window;
     CHECK_THROWS_WITH_AS(robot.plan_robot(world.map(), 0, {0, 0}, {1, 1}, {{Vec2{NAN, 0}, Vec2{0, 0}}}, window),
                          doctest::Contains("neighbour 0"), std::invalid_argument);
+}
+
+TEST_CASE("large: neighbourhood planning in the Local frame allocates nothing once sizes are steady") {
+    set_num_threads(1);  // Eigen's own threaded GEMM allocates per call
+    DiffusionPlanner planner(MadbpModel(local_config(), 2), 3);  // route subgoals and guidance on
+    World w = make_random_world("obstacles", 7, 1, 2.4);
+    Plan plan;
+    for (int i = 0; i < 2; ++i) planner.plan_into(w, plan);
+    REQUIRE(planner.last_scene_batch().B == 7);
+    const long allocs = count_allocs([&] { for (int i = 0; i < 3; ++i) planner.plan_into(w, plan); });
+#if MADBP_TEST_COUNT_ALLOCS
+    CHECK(allocs == 0);
+#endif
+    CHECK(plan.ids.size() == 7);
 }
 
 TEST_CASE("large: circle swaps of up to kMaxCircleAgents robots are valid scenes") {

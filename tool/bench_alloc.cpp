@@ -1,7 +1,8 @@
 // bench_alloc.cpp - heap allocations per diffusion plan once sizes are steady (SPEC 9: none).
 // A program of its own because it replaces malloc and operator new (tests/alloc_counter.hpp);
 // the shipped tool keeps the system allocator.
-//   build/bench_alloc [--model FILE] [--agents 1,2,4,8,16,32] [--plans N] [--guidance W] [--candidates K] [--json]
+//   build/bench_alloc [--model FILE] [--agents 1,2,4,8,16,32,64] [--plans N] [--guidance W] [--candidates K] [--json]
+// Worlds as bench --plan's: half-size 1.2 up to 8 robots, 2.4 up to 32 (neighbourhoods), 3.4 beyond.
 #include <cstdio>
 
 #include "cli_common.hpp"
@@ -15,9 +16,9 @@ int main(int argc, char** argv) {
     try {
         Args a(argc, argv, 1);
         std::string model_path = a.str("--model", "");
-        std::vector<long> teams = a.integers("--agents", "1,2,4,8,16,32", 1, 1024);
+        std::vector<long> teams = a.integers("--agents", "1,2,4,8,16,32,64", 1, 1024);
         int plans = (int)a.integer("--plans", 10, 1, 1000000);
-        const double guidance = a.real("--guidance", 0, 0, 1e6);  // conflict-aware sampling (SamplerConfig)
+        const double guidance = a.real("--guidance", madbp::kDefaultGuidance, 0, 1e6);  // conflict-aware sampling (SamplerConfig)
         const int candidates = (int)a.integer("--candidates", 1, 1, madbp::kMaxCandidates);
         bool json = a.flag("--json");
         a.finish();
@@ -26,11 +27,10 @@ int main(int argc, char** argv) {
         if (!json) std::printf("alloc bench: %s\n%4s %12s\n", model_path.empty() ? "default config" : model_path.c_str(), "n", "allocs/plan");
         for (long n : teams) {
             madbp::MadbpModel model = model_path.empty() ? madbp::MadbpModel(madbp::ModelConfig{}) : madbp::load_model(model_path);
-            if (n > model.config.n_max) throw std::invalid_argument("--agents: " + std::to_string(n) + " exceeds the model's n_max");
             madbp::DiffusionPlanner planner(std::move(model));
             planner.sampler.guidance = (float)guidance;
             planner.sampler.candidates = candidates;
-            madbp::World world = madbp::make_random_world("empty", (int)n, 0, n > 16 ? 2.4 : 1.2);
+            madbp::World world = madbp::make_random_world("empty", (int)n, 0, n > 32 ? 3.4 : n > 8 ? 2.4 : 1.2);
             madbp::Plan plan;
             for (int i = 0; i < 3; ++i) planner.plan_into(world, plan);  // warm-up: workspaces take their sizes
             const double per_plan = (double)count_allocs([&] { for (int i = 0; i < plans; ++i) planner.plan_into(world, plan); }) / plans;
