@@ -229,7 +229,7 @@ TEST_CASE("large: neighbourhood planning in the Local frame allocates nothing on
     Plan plan;
     for (int i = 0; i < 2; ++i) planner.plan_into(w, plan);
     REQUIRE(planner.last_scene_batch().B == 7);
-    const long allocs = count_allocs([&] { for (int i = 0; i < 3; ++i) planner.plan_into(w, plan); });
+    [[maybe_unused]] const long allocs = count_allocs([&] { for (int i = 0; i < 3; ++i) planner.plan_into(w, plan); });
 #if MADBP_TEST_COUNT_ALLOCS
     CHECK(allocs == 0);
 #endif

@@ -303,7 +303,7 @@ TEST_CASE("planner: a steady-state plan allocates nothing") {
     World w = make_random_world("barrier", 6, 4);
     Plan plan;
     for (int i = 0; i < 3; ++i) planner.plan_into(w, plan);  // warm-up: workspaces take their sizes
-    const long allocs = count_allocs([&] { for (int i = 0; i < 3; ++i) planner.plan_into(w, plan); });
+    [[maybe_unused]] const long allocs = count_allocs([&] { for (int i = 0; i < 3; ++i) planner.plan_into(w, plan); });
 #if MADBP_TEST_COUNT_ALLOCS
     CHECK(allocs == 0);
 #endif

@@ -97,15 +97,15 @@ inline int bench_plan(Args& a) {
         auto t0 = std::chrono::steady_clock::now();
         for (int i = 0; i < plans; ++i) planner.plan_into(world, plan);
         const double secs = std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count();
-        const madbp::SceneBatch& sb = planner.last_scene_batch();
-        const double ms = 1000 * secs / plans, rate = plan_flops(config, sb.n, S) * sb.B * candidates / (secs / plans) / 1e9;
+        const int scenes = planner.last_scene_batch().B, per_scene = planner.last_scene_batch().n;
+        const double ms = 1000 * secs / plans, rate = plan_flops(config, per_scene, S) * scenes * candidates / (secs / plans) / 1e9;
         // The guided expert on the same world: mean ms per plan over `plans` / 5 plans (at least 3).
         madbp::GuidedExpert expert(world.map());
         madbp::World ew = world;
         const int expert_plans = std::max(3, plans / 5);
         for (int i = 0; i < expert_plans * madbp::ExpertParams{}.replan_every && !ew.done(); ++i) ew.step(expert.act(ew));
         const double expert_ms = expert.decision_ms();
-        if (sb.B > 1 && robot_K == 0) {  // one robot's own scene (plan_robot), from the first team planned in neighbourhoods
+        if (scenes > 1 && robot_K == 0) {  // one robot's own scene (plan_robot), from the first team planned in neighbourhoods
             std::vector<madbp::DiffusionPlanner::Neighbour> others;
             for (int j = 1; j < world.size(); ++j) others.push_back({world.agents()[j].pos, world.agents()[j].goal});
             std::vector<madbp::Vec2> window;
@@ -114,14 +114,14 @@ inline int bench_plan(Args& a) {
             auto r0 = std::chrono::steady_clock::now();
             for (int i = 0; i < plans; ++i) planner.plan_robot(world.map(), me.id, me.pos, me.goal, others, window);
             robot_ms = 1000 * std::chrono::duration<double>(std::chrono::steady_clock::now() - r0).count() / plans;
-            robot_K = sb.n;
+            robot_K = per_scene;
         }
         if (json)
-            std::printf("%s\n", Json().add("bench", "plan").add("agents", n).add("scenes", sb.B).add("per_scene", sb.n).add("sample_steps", S)
+            std::printf("%s\n", Json().add("bench", "plan").add("agents", n).add("scenes", scenes).add("per_scene", per_scene).add("sample_steps", S)
                                     .add("guidance", guidance).add("candidates", candidates).add("ms_per_plan", ms).add("expert_ms_per_plan", expert_ms)
                                     .add("gflops", rate).add("gemm_gflops", gemm).add("share_of_gemm", rate / gemm).line().c_str());
         else
-            std::printf("%4ld %3dx%-2d %10.3f %10.3f %10.1f %7.0f%%\n", n, sb.B, sb.n, ms, expert_ms, rate, 100 * rate / gemm);
+            std::printf("%4ld %3dx%-2d %10.3f %10.3f %10.1f %7.0f%%\n", n, scenes, per_scene, ms, expert_ms, rate, 100 * rate / gemm);
         std::fflush(stdout);
     }
     if (robot_K > 0) {
