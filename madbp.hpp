@@ -3113,7 +3113,8 @@ public:
     // larger than n_max. A larger team in the training world plans as one scene, and K = 6 for a
     // model trained on 4: both measured better (docs/experiments.md, "Deploy large").
     int neighbours = -1;
-    double sensing_radius = 0;  // world units; 0 = the model's position_scale (the training world's half-size)
+    double sensing_radius = 0;  // world units; 0 = 2 position_scale (the training world's width; measured
+                                // far better than 1.2 in crowds, docs/experiments.md)
 
     explicit DiffusionPlanner(MadbpModel model, uint64_t seed = 0)
         : model_(std::move(model)), schedule_(model_.config.diffusion_steps), rng_(seed) {
@@ -3235,7 +3236,7 @@ private:
         if (shared) update_grid(map);
         route_.resize(n);
         for (int i = 0; i < n; ++i) route_[i] = route_goal(guide_, c, map, pos_[i], goal_[i]);
-        const double radius = sensing_radius > 0 ? sensing_radius : c.position_scale;
+        const double radius = sensing_radius > 0 ? sensing_radius : 2.0 * c.position_scale;
         // Each neighbourhood scene draws its own noise, seeded by the plan and its robot's id.
         const uint64_t plan_seed = local ? rng_.next_u64() : 0;
         if (local) batch_.noise_seed.resize(scenes);

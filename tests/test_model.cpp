@@ -398,11 +398,15 @@ TEST_CASE("planner: neighbourhood planning gives each agent the context of itsel
     World crowd = make_random_world("empty", 8, 4);
     CHECK(local.plan(crowd).ids.size() == 8);
     CHECK_THROWS_AS(whole.plan(crowd), std::invalid_argument);
-    // Within the default sensing radius (position_scale = 1.2) agent 4 has no neighbour: a scene of one.
-    local.sensing_radius = 0;
+    // Within a sensing radius of 1.5 agent 4 (1.8 from its nearest) has no neighbour: a scene of
+    // one; the default radius (2 position_scale = 2.4) includes its nearest.
+    local.sensing_radius = 1.5;
     local.plan(w);
     CHECK(local.last_scene_batch().count[4] == 1);
     CHECK(local.last_scene_batch().count[0] == 2);
+    local.sensing_radius = 0;
+    local.plan(w);
+    CHECK(local.last_scene_batch().count[4] == 2);
     local.neighbours = -2;
     CHECK_THROWS_AS(local.plan(w), std::invalid_argument);
 }

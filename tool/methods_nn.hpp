@@ -17,6 +17,7 @@ struct PlannerOptions {
     bool goal_inpaint = true;
     double goal_reach = -1;    // < 0: the model's default_goal_reach
     int neighbours = -1;       // DiffusionPlanner::neighbours (-1: automatic)
+    double sensing_radius = 0; // DiffusionPlanner::sensing_radius (0: 2 x the model's position_scale)
     double guidance = madbp::kDefaultGuidance;  // SamplerConfig::guidance (0: off)
     int candidates = 1;        // SamplerConfig::candidates (1: off)
     madbp::WindowCost cost;    // SamplerConfig::cost
@@ -41,6 +42,7 @@ inline PlannerOptions read_planner_options(Args& a) {
     o.goal_inpaint = !a.flag("--no-goal-inpaint");
     o.goal_reach = a.real("--goal-reach", -1, 0, 100);  // a negative value is an error, not the default
     o.neighbours = (int)a.integer("--neighbours", -1, -1, 1024);
+    o.sensing_radius = a.real("--sensing-radius", 0, 0, 1000);
     o.guidance = a.real("--guidance", madbp::kDefaultGuidance, 0, 1e6);
     o.candidates = (int)a.integer("--candidates", 1, 1, madbp::kMaxCandidates);
     read_cost_weights(a.str("--cost-weights", ""), o.cost);
@@ -68,6 +70,7 @@ inline MethodSpec madbp_method(const PlannerOptions& o, const MethodSetup& s) {
         planner->sampler.goal_inpaint = o.goal_inpaint;
         if (o.goal_reach >= 0) planner->sampler.goal_reach = (float)o.goal_reach;
         planner->neighbours = o.neighbours;
+        planner->sensing_radius = o.sensing_radius;
         planner->sampler.guidance = (float)o.guidance;
         planner->sampler.candidates = o.candidates;
         planner->sampler.cost = o.cost;
@@ -83,7 +86,8 @@ inline void register_nn_methods(std::vector<Method>& m) {
                  "                    --no-goal-inpaint, --goal-reach R (world units; default 0.55),\n"
                  "                    --neighbours K (each robot plans with its K-1 nearest; 0 = whole team;\n"
                  "                    default: K = the model's n_train_max when the team or the world is larger\n"
-                 "                    than in training, else the whole team),\n"
+                 "                    than in training, else the whole team), --sensing-radius R (neighbours\n"
+                 "                    farther than R are left out; default 2 x the model's position scale, 2.4),\n"
                  "                    conflict-aware sampling (issue 12): --guidance W (each DDIM step moves\n"
                  "                    x0_hat's waypoints by -W * d cost / d waypoint; default 0.004, 0 = off), --candidates K\n"
                  "                    (best of K windows per scene), --cost-weights A,M,G (robot-robot, robot-map,\n"
