@@ -65,7 +65,7 @@ struct TempDir {
     std::string file(const std::string& name) const { return path + "/" + name; }
 };
 
-size_t address_space_bytes() {
+[[maybe_unused]] size_t address_space_bytes() {
     long pages = 0;
     if (FILE* f = std::fopen("/proc/self/statm", "r")) {
         if (std::fscanf(f, "%ld", &pages) != 1) pages = 0;
