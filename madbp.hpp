@@ -3166,7 +3166,8 @@ public:
             if (!std::isfinite(a.pos.x + a.pos.y + a.goal.x + a.goal.y))  // the message only on failure: no allocation
                 throw std::invalid_argument("planner: agent " + std::to_string(a.id) + " has a non-finite position or goal");
         const int K = neighbourhood(n, world.map().half_size);
-        const bool local = K < n || world.map().half_size > model_.config.position_scale * (1 + 1e-9);
+        // A scene per robot unless one scene of the whole team was asked for or chosen.
+        const bool local = neighbours != 0 && (K < n || world.map().half_size > model_.config.position_scale * (1 + 1e-9));
         pos_.resize(n);
         goal_.resize(n);
         ids_.resize(n);

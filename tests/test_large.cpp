@@ -159,8 +159,13 @@ TEST_CASE("large: automatic neighbourhood planning exactly when the world is lar
         CHECK(p.last_scene_batch().B == 7);
         CHECK(p.last_scene_batch().n == 5);
     }
-    p.neighbours = 0;  // asked for: the whole team
+    p.neighbours = 0;  // asked for: the whole team, in any world
     CHECK(p.neighbourhood(5, 2.4) == 5);
+    {
+        World w = make_random_world("empty", 2, 0, 2.4);
+        p.plan(w);
+        CHECK(p.last_scene_batch().B == 1);
+    }
     p.neighbours = 2;
     CHECK(p.neighbourhood(5, 1.2) == 2);
     p.neighbours = -2;
