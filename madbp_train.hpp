@@ -111,8 +111,9 @@ inline std::string collect_scenario(const CollectConfig& c, int n, int e) {
     return "";
 }
 
-// Runs the demonstrator and records every step (positions, velocities, actions).
-inline Demonstration record_demonstration(World& world, Policy& policy, const std::string& map_name) {
+// Runs the demonstrator and records every step (positions, velocities, actions), until the
+// episode is done or, with max_steps >= 0, that many steps are recorded.
+inline Demonstration record_demonstration(World& world, Policy& policy, const std::string& map_name, int max_steps = -1) {
     Demonstration d;
     d.map_name = map_name;
     d.map = world.map();
@@ -122,7 +123,7 @@ inline Demonstration record_demonstration(World& world, Policy& policy, const st
         d.pos.push_back(a.pos);
         d.vel.push_back(a.vel);
     }
-    while (!world.done()) {
+    while (!world.done() && (max_steps < 0 || d.steps < max_steps)) {
         std::vector<Vec2> u = policy.act(world);
         for (Vec2& f : u) f = clamp_box(f, world.config().max_action);
         d.act.insert(d.act.end(), u.begin(), u.end());
@@ -137,7 +138,12 @@ inline Demonstration record_demonstration(World& world, Policy& policy, const st
     return d;
 }
 
-inline DemoSet collect_demonstrations(const CollectConfig& c, const DemonstratorFactory& factory, const std::string& name) {
+// Runs `episode(world, seed, map_name)` for every episode of c's cells (maps x teams of 1 ..
+// n_train_max, c.episodes each; c.threads in parallel) and returns the results in cell, then
+// episode, order, whatever the thread count. Episode e of a cell uses seed c.seed + e + 100000 *
+// cell, and its scenario from collect_scenario; map_name is "<map>" or "<map>/<scenario>".
+template <class Result>
+std::vector<Result> for_each_collect_episode(const CollectConfig& c, const std::function<Result(World&, uint64_t, const std::string&)>& episode) {
     if (c.episodes < 1) throw std::invalid_argument("episodes: must be >= 1");
     if (c.n_train_max < 1 || c.n_train_max > 64) throw std::invalid_argument("n_train_max: must be in [1, 64]");
     double total = 0;
@@ -149,23 +155,20 @@ inline DemoSet collect_demonstrations(const CollectConfig& c, const Demonstrator
         total += s.second;
     }
     if (total > 1 + 1e-9) throw std::invalid_argument("scenarios: fractions sum to " + std::to_string(total) + " > 1");
-    DemoSet set;
-    set.demonstrator = name;
     const int cells = (int)c.maps.size() * c.n_train_max;
+    std::vector<Result> out((size_t)cells * c.episodes);
     long done = 0;
+    std::string error;
     for (int m = 0; m < (int)c.maps.size(); ++m)
         for (int n = 1; n <= c.n_train_max; ++n) {
             const int cell = m * c.n_train_max + (n - 1);
-            std::vector<Demonstration> got(c.episodes);
-            std::string error;
 #pragma omp parallel for schedule(dynamic) num_threads(std::max(1, c.threads))
             for (int e = 0; e < c.episodes; ++e) {
                 try {
                     const uint64_t seed = c.seed + e + 100000ull * cell;
                     const std::string scenario = collect_scenario(c, n, e);
                     World w = scenario.empty() ? make_random_world(c.maps[m], n, seed) : make_interaction_world(scenario, c.maps[m], n, seed);
-                    std::unique_ptr<Policy> policy = factory(w, seed);
-                    got[e] = record_demonstration(w, *policy, scenario.empty() ? c.maps[m] : c.maps[m] + "/" + scenario);
+                    out[(size_t)cell * c.episodes + e] = episode(w, seed, scenario.empty() ? c.maps[m] : c.maps[m] + "/" + scenario);
                 } catch (const std::exception& ex) {
 #pragma omp critical
                     if (error.empty()) error = ex.what();
@@ -174,9 +177,19 @@ inline DemoSet collect_demonstrations(const CollectConfig& c, const Demonstrator
                 if (c.progress) c.progress(++done, (long)cells * c.episodes, "");
             }
             if (!error.empty()) throw std::runtime_error("collect: " + error);
-            for (Demonstration& d : got)
-                if (d.success || !c.successful_only) set.episodes.push_back(std::move(d));
         }
+    return out;
+}
+
+inline DemoSet collect_demonstrations(const CollectConfig& c, const DemonstratorFactory& factory, const std::string& name) {
+    std::vector<Demonstration> got = for_each_collect_episode<Demonstration>(c, [&](World& w, uint64_t seed, const std::string& map_name) {
+        std::unique_ptr<Policy> policy = factory(w, seed);
+        return record_demonstration(w, *policy, map_name);
+    });
+    DemoSet set;
+    set.demonstrator = name;
+    for (Demonstration& d : got)
+        if (d.success || !c.successful_only) set.episodes.push_back(std::move(d));
     return set;
 }
 
@@ -660,7 +673,11 @@ inline std::vector<WindowRef> make_windows(const DemoSet& demos, const std::vect
     for (int e : episodes) {
         const Demonstration& d = demos.episodes[e];
         if (mc.window == WindowMode::CT) { out.push_back({e, 0}); continue; }
-        for (int t = 0; t < std::max(1, d.steps); t += std::max(1, stride)) out.push_back({e, t});
+        // A successful episode ends with every robot at its goal, so frames past its end (held
+        // positions) are true. An unsuccessful one was cut short (a timeout, or a DAgger label of
+        // a few steps): only its windows that lie wholly inside the recording are taken.
+        const int last = d.success ? std::max(1, d.steps) - 1 : d.steps - mc.horizon * mc.waypoint_stride;
+        for (int t = 0; t <= std::max(0, last); t += std::max(1, stride)) out.push_back({e, t});
     }
     return out;
 }
@@ -1165,6 +1182,221 @@ inline TrainReport train(const DemoSet& demos, MadbpModel& model, const TrainCon
     if (step >= tc.ema_start) ema.copy_to(*model.params);
     model.set_training(false);
     return rep;
+}
+
+// =============================================================================================
+// DAgger: on-policy data aggregation (issue 12)
+// =============================================================================================
+// The learner drives, the expert labels. Expert demonstrations only show states the expert
+// visits; a learned planner drifts into others (two robots nose to nose, neither yielding)
+// and has never seen a way out of them. Each round rolls the current model out, labels every
+// label_every-th visited state with what the guided expert does from that exact state, adds
+// the labels to those of earlier rounds and fine-tunes the model on them plus expert windows.
+
+// What the expert does from `state`: the first `steps` steps of a fresh episode (the world's
+// configuration, its full step budget) that starts from the robots' positions, velocities and
+// goals, solved by a fresh GuidedExpert, so its plan and priorities come from this state. A
+// label is successful only if every robot reached its goal within it; otherwise make_windows
+// takes only its complete windows.
+inline Demonstration expert_label(const World& state, int steps, const ExpertParams& expert, const std::string& map_name) {
+    if (steps < 1) throw std::invalid_argument("expert_label: steps must be >= 1");
+    World w(state.map(), state.config());
+    for (const Agent& a : state.agents()) {
+        w.add_agent(a.goal, a.goal, a.id);  // then moved: a state pressed into a wall is valid
+        w.set_state(a.id, a.pos, a.vel);
+    }
+    GuidedExpert policy(w.map(), expert);
+    return record_demonstration(w, policy, map_name, steps);
+}
+
+// Labels a window needs: H * waypoint_stride steps (frames t .. t + H stride; make_train_batch
+// reads the frame after the window as the horizon goal).
+inline int label_steps(const ModelConfig& mc) { return mc.horizon * mc.waypoint_stride; }
+
+struct DaggerRollouts {
+    int episodes = 0, successes = 0;
+    long collisions = 0;
+    DemoSet labels;  // one Demonstration per labelled state, in episode order
+    double success() const { return episodes ? (double)successes / episodes : 0; }
+    double success_se() const { const double p = success(); return episodes ? std::sqrt(p * (1 - p) / episodes) : 0; }
+};
+
+// Rolls `learner` out on the episodes of `scenes` (as collect_demonstrations would, the same
+// seeds and scenes) and labels every label_every-th state it visits (0: none, an evaluation).
+inline DaggerRollouts dagger_rollouts(const CollectConfig& scenes, const PolicyFactory& learner, const ModelConfig& mc, int label_every,
+                                      const ExpertParams& expert = ExpertParams{}) {
+    if (label_every < 0) throw std::invalid_argument("label_every: must be >= 0");
+    struct Episode { bool success = false; long collisions = 0; std::vector<Demonstration> labels; };
+    std::vector<Episode> got = for_each_collect_episode<Episode>(scenes, [&](World& w, uint64_t seed, const std::string& map_name) {
+        std::unique_ptr<Policy> policy = learner(w, seed);
+        Episode ep;
+        while (!w.done()) {
+            if (label_every > 0 && w.t() % label_every == 0) ep.labels.push_back(expert_label(w, label_steps(mc), expert, map_name));
+            std::vector<Vec2> u = policy->act(w);
+            for (Vec2& f : u) f = clamp_box(f, w.config().max_action);
+            w.step(u);
+        }
+        ep.success = w.metrics().success;
+        ep.collisions = w.metrics().collisions();
+        return ep;
+    });
+    DaggerRollouts r;
+    r.labels.demonstrator = "expert:dagger";
+    for (Episode& ep : got) {
+        r.episodes++;
+        r.successes += ep.success;
+        r.collisions += ep.collisions;
+        for (Demonstration& d : ep.labels) r.labels.episodes.push_back(std::move(d));
+    }
+    return r;
+}
+
+struct DaggerConfig {
+    int rounds = 3;               // >= 1
+    // The episodes each round rolls out (maps, teams of 1 .. n_train_max, episodes per cell,
+    // scenario mix, threads). Round r uses seed rollouts.seed + r * kDaggerRoundSeeds, so no
+    // two rounds (and, with the default seed, no training demonstration or reported evaluation
+    // seed) share an episode.
+    CollectConfig rollouts;
+    int label_every = 2;          // label every k-th visited state, >= 1
+    ExpertParams expert;
+    // Expert-demonstration windows per label window in each fine-tune (drawn afresh each round
+    // from the base set): the labels teach the way out of the learner's own states, the expert
+    // windows keep what the model already knew.
+    double base_ratio = 1.0;
+    TrainConfig train;            // each round's fine-tune; train.out = the final model
+    std::function<void(const struct DaggerRound&)> on_round;  // after each round (the tool logs it)
+};
+static constexpr uint64_t kDaggerRoundSeeds = 10000000;
+static constexpr uint64_t kDaggerDefaultSeed = 50000000;
+
+// One round: the success of the model it started from (on its own rollouts), the labels it
+// made, and the fine-tune. Round `rounds + 1` is the final model's evaluation (no labels).
+struct DaggerRound {
+    int round = 0;
+    double success = 0, success_se = 0, collisions = 0;  // collisions per episode
+    int episodes = 0;
+    long labels = 0, train_episodes = 0;
+    double seconds = 0;
+};
+
+// A round's files: the labels (<out>.round-R.labels.bin) and the fine-tuned model
+// (<out>.round-R.safetensors, with train's .train state and .csv curve).
+inline std::string dagger_file(const TrainConfig& tc, int round, const char* what) { return tc.out + ".round-" + std::to_string(round) + what; }
+
+// The DAgger log <out>.dagger.csv, one row per finished round (read back on resume).
+inline std::string dagger_csv(const std::vector<DaggerRound>& rounds) {
+    std::string s = "round,success,success_se,collisions,episodes,labels,train_episodes,seconds\n";
+    char line[256];
+    for (const DaggerRound& r : rounds) {
+        std::snprintf(line, sizeof line, "%d,%.17g,%.17g,%.17g,%d,%ld,%ld,%.3f\n", r.round, r.success, r.success_se, r.collisions, r.episodes,
+                      r.labels, r.train_episodes, r.seconds);
+        s += line;
+    }
+    return s;
+}
+inline std::vector<DaggerRound> read_dagger_csv(const std::string& path) {
+    std::vector<DaggerRound> rounds;
+    const std::vector<uint8_t> bytes = read_file(path, 1 << 20, "1 MiB");
+    std::stringstream ss(std::string(bytes.begin(), bytes.end()));
+    std::string line;
+    std::getline(ss, line);  // header
+    while (std::getline(ss, line)) {
+        DaggerRound r;
+        if (std::sscanf(line.c_str(), "%d,%lf,%lf,%lf,%d,%ld,%ld,%lf", &r.round, &r.success, &r.success_se, &r.collisions, &r.episodes, &r.labels,
+                        &r.train_episodes, &r.seconds) != 8 || r.round != (int)rounds.size() + 1)
+            throw std::runtime_error(path + ": row " + std::to_string(rounds.size() + 1) + " is not a DAgger round ('" + printable(line) + "')");
+        rounds.push_back(r);
+    }
+    return rounds;
+}
+
+// Runs the rounds from `model` (trained on `base`), fine-tuning it in place; writes every
+// round's files, the log and finally train.out. `learner(model)` makes the rollout policy
+// (the planner with the sampler settings it will be used with). With train.resume, finished
+// rounds are read back (their labels from their files) and an interrupted fine-tune continues
+// from its state file, so a resumed run ends with the same files as an uninterrupted one. A
+// fine-tune stopped by train.keep_going ends the run there (fewer than rounds + 1 rows).
+using LearnerFactory = std::function<PolicyFactory(const MadbpModel&)>;
+inline std::vector<DaggerRound> dagger(const DemoSet& base, MadbpModel& model, const DaggerConfig& c, const LearnerFactory& learner) {
+    auto file_exists = [](const std::string& path) { return std::ifstream(path).good(); };
+    if (c.rounds < 1) throw std::invalid_argument("rounds: must be >= 1");
+    if (c.label_every < 1) throw std::invalid_argument("label_every: must be >= 1");
+    if (!(c.base_ratio >= 0) || !std::isfinite(c.base_ratio)) throw std::invalid_argument("base_ratio: must be finite and >= 0");
+    if (c.train.out.empty()) throw std::invalid_argument("train.out: DAgger needs an output file");
+    if (base.episodes.empty()) throw std::invalid_argument("dagger: the base dataset has no episodes");
+    const ModelConfig mc = model.config;
+    const std::string log_path = c.train.out + ".dagger.csv";
+    std::vector<DaggerRound> done;
+    if (c.train.resume && file_exists(log_path)) done = read_dagger_csv(log_path);
+    DemoSet labels;  // every round's so far
+    labels.demonstrator = "expert:dagger";
+    for (const DaggerRound& r : done) {
+        if (r.round > c.rounds) break;  // the final evaluation's row
+        DemoSet l = load_demos(dagger_file(c.train, r.round, ".labels.bin"));
+        for (Demonstration& d : l.episodes) labels.episodes.push_back(std::move(d));
+        model = load_model(dagger_file(c.train, r.round, ".safetensors"));
+    }
+    for (int round = (int)done.size() + 1; round <= c.rounds + 1; ++round) {
+        const auto t0 = std::chrono::steady_clock::now();
+        CollectConfig scenes = c.rollouts;
+        scenes.seed = c.rollouts.seed + (uint64_t)round * kDaggerRoundSeeds;
+        const bool last = round == c.rounds + 1;
+        const std::string labels_path = dagger_file(c.train, round, ".labels.bin");
+        DaggerRollouts ro;
+        if (!last && c.train.resume && file_exists(labels_path)) {
+            ro.labels = load_demos(labels_path);  // rolled out before the interruption; only its success is recomputed
+            DaggerRollouts eval = dagger_rollouts(scenes, learner(model), mc, 0, c.expert);
+            ro.episodes = eval.episodes, ro.successes = eval.successes, ro.collisions = eval.collisions;
+        } else {
+            ro = dagger_rollouts(scenes, learner(model), mc, last ? 0 : c.label_every, c.expert);
+            if (!last) {
+                save_demos(labels_path, ro.labels);
+                ro.labels = load_demos(labels_path);  // as stored (f32), so a resumed run trains on the same values
+            }
+        }
+        DaggerRound r;
+        r.round = round;
+        r.episodes = ro.episodes;
+        r.success = ro.success();
+        r.success_se = ro.success_se();
+        r.collisions = (double)ro.collisions / std::max(1, ro.episodes);
+        r.labels = (long)ro.labels.episodes.size();
+        if (!last) {
+            for (Demonstration& d : ro.labels.episodes) labels.episodes.push_back(std::move(d));
+            // This round's fine-tune set: every label so far, then base episodes in an order
+            // drawn from the round's seed until their windows reach base_ratio x the labels'.
+            DemoSet mix;
+            mix.demonstrator = base.demonstrator + "+dagger";
+            mix.episodes = labels.episodes;
+            double label_windows = 0;
+            for (int e = 0; e < (int)labels.episodes.size(); ++e) label_windows += make_windows(labels, {e}, mc, 1).size();
+            std::vector<int> order(base.episodes.size());
+            std::iota(order.begin(), order.end(), 0);
+            Rng shuffle(c.train.seed + 0xda66e7ull * round);
+            for (int i = (int)order.size() - 1; i > 0; --i) std::swap(order[i], order[shuffle.uniform_int(i + 1)]);
+            double base_windows = 0;
+            for (int e : order) {
+                if (base_windows >= c.base_ratio * label_windows) break;
+                mix.episodes.push_back(base.episodes[e]);
+                base_windows += make_windows(base, {e}, mc, 1).size();
+            }
+            r.train_episodes = (long)mix.episodes.size();
+            TrainConfig tc = c.train;
+            tc.out = dagger_file(c.train, round, ".safetensors");
+            tc.resume = c.train.resume && file_exists(tc.out + ".train");
+            tc.seed = c.train.seed + round;
+            if (train(mix, model, tc).steps < tc.steps) return done;  // stopped by train.keep_going: resume later
+        }
+        r.seconds = std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count();
+        done.push_back(r);
+        const std::string csv = dagger_csv(done);
+        write_file_atomic(log_path, std::vector<uint8_t>(csv.begin(), csv.end()));
+        if (c.on_round) c.on_round(r);
+    }
+    save_model(c.train.out, model, {{"demonstrator", base.demonstrator + "+dagger"}, {"train.n_train_max", std::to_string(c.train.n_train_max)},
+                                    {"train.dagger_rounds", std::to_string(c.rounds)}});
+    return done;
 }
 
 }  // namespace madbp

@@ -319,6 +319,7 @@ const std::vector<Subcommand>& subcommands() {
         {"bench", "world stepping speed (--nn kernels, --plan planner)", cmd_bench},
         {"collect", "record demonstrations for training", cmd_collect},
         {"train", "train the MA-DBP model", cmd_train},
+        {"dagger", "improve a model on its own rollouts, labelled by the expert (DAgger)", cmd_dagger},
         {"mappo", "train a MAPPO policy for one map and team size (SPEC 3.3)", cmd_mappo},
         {"madiff", "train a MADiff baseline for one map and team size (SPEC 3.4)", cmd_madiff},
     };

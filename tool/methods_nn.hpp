@@ -50,22 +50,16 @@ inline PlannerOptions read_planner_options(Args& a) {
     return o;
 }
 
-// Loads the model once; every episode gets its own planner on a copy (planners keep
-// workspaces, so episodes running in parallel must not share one).
-inline MethodSpec madbp_method(const PlannerOptions& o, const MethodSetup& s) {
-    // One thread per plan (SPEC 9 measures one core); eval --threads runs episodes in parallel.
-    madbp::set_num_threads(1);
-    auto shared = std::make_shared<madbp::MadbpModel>(madbp::load_model(o.model_path));
-    const int n_train = shared->config.n_train_max > 0 ? shared->config.n_train_max : -1;
-    if (o.sample_steps > shared->config.diffusion_steps)
-        throw std::invalid_argument("--sample-steps: must be <= the model's diffusion steps (" + std::to_string(shared->config.diffusion_steps) + ")");
+// The planner policy of one episode: a planner on a copy of `model` (planners keep workspaces,
+// so episodes running in parallel must not share one) with the options' sampler settings.
+inline madbp::PolicyFactory planner_factory(std::shared_ptr<const madbp::MadbpModel> model, const PlannerOptions& o, const MethodSetup& s) {
+    if (o.sample_steps > model->config.diffusion_steps)
+        throw std::invalid_argument("--sample-steps: must be <= the model's diffusion steps (" + std::to_string(model->config.diffusion_steps) + ")");
     madbp::FollowerConfig fc;
     fc.safety_filter = s.filter;
     fc.replan_every = s.replan;
-    MethodSpec spec;
-    spec.n_train = n_train;
-    spec.factory = [shared, fc, o](const madbp::World&, uint64_t seed) -> std::unique_ptr<madbp::Policy> {
-        auto planner = std::make_shared<madbp::DiffusionPlanner>(shared->clone(), seed);
+    return [model, fc, o](const madbp::World&, uint64_t seed) -> std::unique_ptr<madbp::Policy> {
+        auto planner = std::make_shared<madbp::DiffusionPlanner>(model->clone(), seed);
         if (o.sample_steps > 0) planner->sampler.sample_steps = o.sample_steps;
         planner->sampler.goal_inpaint = o.goal_inpaint;
         if (o.goal_reach >= 0) planner->sampler.goal_reach = (float)o.goal_reach;
@@ -76,6 +70,16 @@ inline MethodSpec madbp_method(const PlannerOptions& o, const MethodSetup& s) {
         planner->sampler.cost = o.cost;
         return std::make_unique<madbp::PlanFollower>([planner](const madbp::World& w) { return planner->plan(w); }, fc);
     };
+}
+
+// Loads the model once for every episode of a cell.
+inline MethodSpec madbp_method(const PlannerOptions& o, const MethodSetup& s) {
+    // One thread per plan (SPEC 9 measures one core); eval --threads runs episodes in parallel.
+    madbp::set_num_threads(1);
+    auto shared = std::make_shared<const madbp::MadbpModel>(madbp::load_model(o.model_path));
+    MethodSpec spec;
+    spec.n_train = shared->config.n_train_max > 0 ? shared->config.n_train_max : -1;
+    spec.factory = planner_factory(shared, o, s);
     return spec;
 }
 
@@ -283,6 +287,88 @@ inline int cmd_train(Args& a) {
     else
         std::printf("train: %ld steps in %.1f s; last train loss %.4f, validation loss %.4f (noise %.4f) -> %s\n", r.steps, r.seconds,
                     r.last_train.total, r.last_val.total, r.last_val.noise, tc.out.c_str());
+    return 0;
+}
+
+inline int cmd_dagger(Args& a) {
+    if (a.flag("--help")) {
+        std::printf(
+            "madbp dagger - on-policy data aggregation (issue 12): roll the model out, label the states it\n"
+            "               visits with what the guided expert does from them, fine-tune on the labels\n"
+            "               of every round so far plus as many expert windows; repeat\n"
+            "  --model FILE       the model to start from (default models/madbp-default.safetensors)\n"
+            "  --data FILE        the expert demonstrations it was trained on (default demos.bin)\n"
+            "  --out FILE         final model (default dagger.safetensors); round R writes FILE.round-R.labels.bin\n"
+            "                     and FILE.round-R.safetensors (+ .train, .csv); the log is FILE.dagger.csv\n"
+            "  --resume           continue an interrupted run from its files\n"
+            "  --rounds R         rounds (default 3); the log's round R+1 is the final model's evaluation\n"
+            "  --episodes E       rollouts per (map, team size) cell and round (default 40)\n"
+            "  --maps LIST        (default empty,obstacles,barrier)   --n-train-max N (teams 1..N, default 4)\n"
+            "  --scenarios LIST   interaction scenes in the rollouts, as for collect (default all:0.3)\n"
+            "  --label-every K    label every K-th visited state (default 2)\n"
+            "  --base-ratio X     expert windows per label window in each fine-tune (default 1)\n"
+            "  --steps N          fine-tune steps per round (default 3000)   --batch B (default 64)\n"
+            "  --lr X             fine-tune learning rate (default 1e-4)\n"
+            "  --seed S           seed of the rollouts (round R: S + R x 10^7) and the fine-tunes (default 50000000)\n"
+            "  --threads T        parallel rollouts and training replicas (default 2)\n"
+            "  planner options of the rollouts as for `eval --method madbp` (--guidance W, --candidates K, ...)\n");
+        return 0;
+    }
+    PlannerOptions o = read_planner_options(a);
+    std::string data = a.str("--data", "demos.bin");
+    madbp::DaggerConfig c;
+    c.train.out = a.str("--out", "dagger.safetensors");
+    c.train.resume = a.flag("--resume");
+    c.rounds = (int)a.integer("--rounds", 3, 1, 1000);
+    c.rollouts.episodes = (int)a.integer("--episodes", 40, 1, 1000000);
+    std::string maps = a.str("--maps", "empty,obstacles,barrier");
+    c.rollouts.maps.clear();
+    std::stringstream ss(maps);
+    for (std::string m; std::getline(ss, m, ',');) {
+        madbp::Rng probe(0);
+        madbp::make_map(m, probe);  // unknown names fail here, before any work
+        c.rollouts.maps.push_back(m);
+    }
+    c.rollouts.n_train_max = (int)a.integer("--n-train-max", 4, 1, 64);
+    c.rollouts.scenarios = parse_scenario_mix(a.str("--scenarios", "all:0.3"));
+    c.label_every = (int)a.integer("--label-every", 2, 1, 1000);
+    c.base_ratio = a.real("--base-ratio", 1, 0, 1e6);
+    c.train.steps = a.integer("--steps", 3000, 1, 100000000);
+    c.train.batch = (int)a.integer("--batch", 64, 1, 100000);
+    c.train.lr = (float)a.real("--lr", 1e-4, 1e-7, 1);
+    c.train.n_train_max = c.rollouts.n_train_max;
+    c.train.curriculum_end = 0;  // a fine-tune: every team size from the first step
+    c.train.ema_start = 0;
+    const uint64_t seed = (uint64_t)a.integer("--seed", (long)madbp::kDaggerDefaultSeed, 0);
+    c.rollouts.seed = seed;
+    c.train.seed = seed;
+    const int threads = (int)a.integer("--threads", 2, 1, 256);
+    a.finish();
+    c.rollouts.threads = threads;
+    c.train.threads = threads;
+    madbp::set_num_threads(1);
+    madbp::MadbpModel model = madbp::load_model(o.model_path);
+    if (c.train.n_train_max > model.config.n_max) throw std::invalid_argument("--n-train-max: exceeds the model's n_max");
+    madbp::DemoSet base = madbp::load_demos(data);
+    madbp::validate_demos(base, model.config.n_max, data);
+    c.rollouts.progress = progress_line("dagger rollouts");
+    c.train.progress = progress_line("dagger fine-tune");
+    c.on_round = [&](const madbp::DaggerRound& r) {
+        const bool last = r.round == c.rounds + 1;
+        if (last)
+            std::printf("dagger: after round %d: success %.3f +- %.3f over %d rollouts, %.2f collisions/episode (%.0f s)\n", c.rounds, r.success,
+                        r.success_se, r.episodes, r.collisions, r.seconds);
+        else
+            std::printf("dagger: round %d: the model going in: success %.3f +- %.3f over %d rollouts, %.2f collisions/episode; %ld labels; "
+                        "fine-tuned on %ld episodes (%.0f s)\n", r.round, r.success, r.success_se, r.episodes, r.collisions, r.labels,
+                        r.train_episodes, r.seconds);
+        std::fflush(stdout);
+    };
+    const MethodSetup setup;
+    madbp::dagger(base, model, c, [&](const madbp::MadbpModel& m) {
+        return planner_factory(std::make_shared<const madbp::MadbpModel>(m.clone()), o, setup);
+    });
+    std::printf("dagger: %d rounds -> %s (log %s.dagger.csv)\n", c.rounds, c.train.out.c_str(), c.train.out.c_str());
     return 0;
 }
 
