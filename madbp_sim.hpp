@@ -1413,11 +1413,20 @@ struct FollowerConfig {
     bool safety_filter = true;   // run the SPEC 3.2 filter after the tracker
     TrackerParams tracker;
     SafetyFilterParams filter;
+    // Safety-filter weight of the robot that goes first, >= 1 (1: all equal, SPEC 3.2). As in
+    // the guided expert (and with its default, 4): robots still travelling go before robots at
+    // their goals, then the one farther from its goal when the follower first saw it, then the
+    // lower id; the weights fall linearly to 1. In a symmetric standoff, equal weights bend both
+    // robots' actions alike and can hold them nose to nose; unequal weights make one give way
+    // (issue 12: corridor swaps of two robots .72-.84 -> .91-.98 with MA-DBP, docs/experiments.md).
+    double priority_weight = 4;
 };
 class PlanFollower : public Policy {
 public:
     explicit PlanFollower(Planner planner, FollowerConfig cfg = FollowerConfig{}) : planner_(std::move(planner)), cfg_(cfg) {
         if (cfg_.replan_every < 1) throw std::invalid_argument("replan_every: must be >= 1 (got " + std::to_string(cfg_.replan_every) + ")");
+        if (!(cfg_.priority_weight >= 1) || !std::isfinite(cfg_.priority_weight))
+            throw std::invalid_argument("priority_weight: must be finite and >= 1 (got " + std::to_string(cfg_.priority_weight) + ")");
     }
     std::vector<Vec2> act(const World& world) override {
         if (needs_plan(world)) {
@@ -1443,12 +1452,35 @@ public:
             Vec2 v_ref = k + 1 <= last ? model.steady_velocity(w[k + 1] - w1) : Vec2{0, 0};
             u[world.index_of(plan_.ids[i])] = track_waypoint(a.pos, a.vel, w1, v_ref, model, cfg_.tracker, world.config().max_action);
         }
-        if (cfg_.safety_filter) u = safety_filter(world, u, cfg_.filter);
+        if (cfg_.safety_filter) u = safety_filter(world, u, cfg_.filter, filter_weights(world));
         return u;
     }
     double decision_ms() const override { return plans_ ? total_ms_ / plans_ : 0; }
     int plans() const { return plans_; }
     const Plan& plan() const { return plan_; }
+
+    // The safety-filter weights of this step (FollowerConfig::priority_weight), in agents()
+    // order; empty when all are equal.
+    std::vector<double> filter_weights(const World& world) {
+        const int n = world.size();
+        if (cfg_.priority_weight == 1 || n < 2) return {};
+        const auto& ag = world.agents();
+        std::vector<int> order(n);
+        for (int i = 0; i < n; ++i) {
+            order[i] = i;
+            if (!first_distance_.count(ag[i].id)) first_distance_[ag[i].id] = norm(ag[i].goal - ag[i].pos);
+        }
+        std::sort(order.begin(), order.end(), [&](int a, int b) {
+            const bool ra = world.at_goal(ag[a]), rb = world.at_goal(ag[b]);
+            if (ra != rb) return rb;
+            const double da = first_distance_[ag[a].id], db = first_distance_[ag[b].id];
+            if (da != db) return da > db;
+            return ag[a].id < ag[b].id;
+        });
+        std::vector<double> w(n);
+        for (int rank = 0; rank < n; ++rank) w[order[rank]] = 1 + (cfg_.priority_weight - 1) * (n - 1 - rank) / (n - 1);
+        return w;
+    }
 
 private:
     Planner planner_;
@@ -1456,6 +1488,7 @@ private:
     Plan plan_;
     int plan_t0_ = 0, plans_ = 0;
     double total_ms_ = 0;
+    std::map<int, double> first_distance_;  // agent id -> distance to its goal when first seen
     bool needs_plan(const World& world) const {
         if (plans_ == 0 || world.t() < plan_t0_ || world.t() - plan_t0_ >= cfg_.replan_every) return true;
         if ((int)plan_.ids.size() != world.size()) return true;

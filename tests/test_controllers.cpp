@@ -233,6 +233,42 @@ TEST_CASE("PlanFollower: replans every m steps and on joins and leaves; bad plan
     CHECK_THROWS_AS(PlanFollower(LinePlanner{}, zero), std::invalid_argument);
 }
 
+TEST_CASE("PlanFollower: filter priorities break a symmetric standoff as the expert's do") {
+    // Two robots nose to nose in the open, each driving at the other: with equal weights the
+    // filter bends both actions alike; with priority_weight the one that goes first (farther
+    // from its goal; the lower id on a tie) keeps more of its action.
+    World w;
+    w.add_agent({-0.12, 0}, {0.9, 0});   // 1.02 from its goal: goes first
+    w.add_agent({0.12, 0.01}, {-0.8, 0.01});
+    FollowerConfig equal;
+    equal.priority_weight = 1;
+    PlanFollower a(LinePlanner{}, equal), b(LinePlanner{}, FollowerConfig{});
+    CHECK(FollowerConfig{}.priority_weight == 4);
+    CHECK(a.filter_weights(w).empty());
+    const std::vector<double> weights = b.filter_weights(w);
+    REQUIRE(weights.size() == 2);
+    CHECK(weights[0] == 4);
+    CHECK(weights[1] == 1);
+    PlanFollower nominal(LinePlanner{}, [] { FollowerConfig f; f.safety_filter = false; return f; }());
+    const std::vector<Vec2> u0 = nominal.act(w), ue = a.act(w), up = b.act(w);
+    const double bend_e0 = norm(ue[0] - u0[0]), bend_e1 = norm(ue[1] - u0[1]);
+    const double bend_p0 = norm(up[0] - u0[0]), bend_p1 = norm(up[1] - u0[1]);
+    MESSAGE("bends, equal: " << bend_e0 << " " << bend_e1 << "; priorities: " << bend_p0 << " " << bend_p1);
+    REQUIRE(bend_e0 + bend_e1 > 0.05);  // the filter is active here
+    CHECK(std::fabs(bend_e0 - bend_e1) < 0.3 * (bend_e0 + bend_e1));
+    CHECK(bend_p0 < 0.5 * bend_p1);
+    // A robot at its goal gives way to one still travelling; the order is kept from first sight.
+    w.set_state(0, {0.9, 0}, {0, 0});
+    const std::vector<double> later = b.filter_weights(w);
+    CHECK(later[0] == 1);
+    CHECK(later[1] == 4);
+    FollowerConfig bad;
+    bad.priority_weight = 0.5;
+    CHECK_THROWS_WITH_AS(PlanFollower(LinePlanner{}, bad), doctest::Contains("priority_weight"), std::invalid_argument);
+    bad.priority_weight = NAN;
+    CHECK_THROWS_WITH_AS(PlanFollower(LinePlanner{}, bad), doctest::Contains("priority_weight"), std::invalid_argument);
+}
+
 TEST_CASE("wavefront: steps around a wall, unreachable behind a closed one") {
     WorldMap m;
     m.boxes.push_back({{-1.2, -0.05}, {0.6, 0.05}});  // gap from 0.6 to 1.2 on the right

@@ -21,6 +21,7 @@ struct PlannerOptions {
     double guidance = madbp::kDefaultGuidance;  // SamplerConfig::guidance (0: off)
     int candidates = 1;        // SamplerConfig::candidates (1: off)
     madbp::WindowCost cost;    // SamplerConfig::cost
+    double priority_weight = madbp::FollowerConfig{}.priority_weight;  // 1: the filter weighs robots equally
 };
 // "A,M,G": the agent, map and goal weights of the window cost.
 inline void read_cost_weights(const std::string& s, madbp::WindowCost& w) {
@@ -47,6 +48,7 @@ inline PlannerOptions read_planner_options(Args& a) {
     o.candidates = (int)a.integer("--candidates", 1, 1, madbp::kMaxCandidates);
     read_cost_weights(a.str("--cost-weights", ""), o.cost);
     o.cost.agent_margin = (float)a.real("--cost-margin", o.cost.agent_margin, 0, 10);
+    o.priority_weight = a.real("--priority-weight", o.priority_weight, 1, 1000);
     return o;
 }
 
@@ -58,6 +60,7 @@ inline madbp::PolicyFactory planner_factory(std::shared_ptr<const madbp::MadbpMo
     madbp::FollowerConfig fc;
     fc.safety_filter = s.filter;
     fc.replan_every = s.replan;
+    fc.priority_weight = o.priority_weight;
     return [model, fc, o](const madbp::World&, uint64_t seed) -> std::unique_ptr<madbp::Policy> {
         auto planner = std::make_shared<madbp::DiffusionPlanner>(model->clone(), seed);
         if (o.sample_steps > 0) planner->sampler.sample_steps = o.sample_steps;
@@ -95,7 +98,9 @@ inline void register_nn_methods(std::vector<Method>& m) {
                  "                    conflict-aware sampling (issue 12): --guidance W (each DDIM step moves\n"
                  "                    x0_hat's waypoints by -W * d cost / d waypoint; default 0.004, 0 = off), --candidates K\n"
                  "                    (best of K windows per scene), --cost-weights A,M,G (robot-robot, robot-map,\n"
-                 "                    goal; default 100,100,200), --cost-margin M (robot-robot, default 0.05)",
+                 "                    goal; default 100,100,200), --cost-margin M (robot-robot, default 0.05),\n"
+                 "                    --priority-weight W (safety-filter weight of the robot that goes first, as the\n"
+                 "                    expert's; default 4; 1 = all equal)",
                  [](Args& a, const MethodSetup& s) { return madbp_method(read_planner_options(a), s); }});
 }
 
