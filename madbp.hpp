@@ -1749,8 +1749,14 @@ struct ModelConfig {
     float subgoal_distance = 0;        // > 0: a goal farther than this, or out of view, is given as a point this far
                                        // along the route around the map (route_goal; world units)
     int n_train_max = 0;               // the largest team in training (metadata train.n_train_max; 0 = unknown)
+    bool velocity_context = false;     // each robot's current velocity is in its pose (metadata "velocity_context")
 
     int levels() const { return (int)channels.size(); }
+    // Rows of SceneBatch::pose: position, goal (and velocity).
+    int pose_rows() const { return velocity_context ? 6 : 4; }
+    // A velocity in pose units: the displacement over one window at that velocity, in window_scale
+    // units (about 1 at the expert's cruising pace, like the window itself).
+    double velocity_unit() const { return (horizon - 1) * waypoint_stride * WorldConfig{}.dt / window_scale; }
     int image_tokens() const { return (grid / 8) * (grid / 8); }
     // Throws std::invalid_argument naming the field when a value is unusable.
     void validate() const {
@@ -1794,6 +1800,7 @@ struct ModelConfig {
                 {"window", window == WindowMode::MW ? "MW" : "CT"}, {"position_scale", scale}, {"window_scale", wscale},
                 {"prediction", prediction == Prediction::Eps ? "eps" : "x0"}, {"local_grid", std::to_string(local_grid)},
                 {"local_extent", lext}, {"frame", frame == SceneFrame::World ? "world" : "local"}, {"subgoal_distance", sub}};
+        if (velocity_context) md["velocity_context"] = "1";
         if (n_train_max > 0) md["train.n_train_max"] = std::to_string(n_train_max);  // training writes it too
         return md;
     }
@@ -1863,6 +1870,11 @@ struct ModelConfig {
         }
         if (md.count("subgoal_distance")) c.subgoal_distance = real("subgoal_distance");
         if (md.count("train.n_train_max")) c.n_train_max = integer("train.n_train_max");
+        if (md.count("velocity_context")) {
+            const std::string& v = get("velocity_context");
+            if (v != "0" && v != "1") throw std::runtime_error(source + ": metadata field 'velocity_context' must be 0 or 1");
+            c.velocity_context = v == "1";
+        }
         try { c.validate(); } catch (const std::invalid_argument& e) { throw std::runtime_error(source + ": " + e.what()); }
         return c;
     }
@@ -1874,7 +1886,8 @@ struct SceneBatch {
     std::vector<float> agent_mask;  // (A) 1 = active agent, 0 = padding
     std::vector<int> slot;          // (A) PE_agent slot in [0, n_max), distinct within a scene
     std::vector<int> count;         // (B) active agents per scene (n_a)
-    Mat pose;                       // (4, A) normalised current position x, y and goal x, y, from the scene's origin
+    Mat pose;                       // (4, A) normalised current position x, y and goal x, y, from the scene's origin;
+                                    // (6, A) with ModelConfig::velocity_context: then velocity x, y (velocity_unit)
     Mat grid;                       // (1, G*G*B) occupancy grid per scene, column b*G*G + row*G + col
     Mat local;                      // (1, Gl*Gl*A) each agent's crop of the map (local_crop), when Gl > 0
     bool shared_grid = false;       // grid holds one map for every scene (planning only; encoded once)
@@ -1893,21 +1906,21 @@ struct SceneBatch {
         return {o.x + pose(2, a) * (double)c.position_scale, o.y + pose(3, a) * (double)c.position_scale};
     }
     int grid_scenes() const { return shared_grid ? 1 : B; }
-    void resize(int B_, int n_, int G, int Gl = 0, bool shared = false) {
+    void resize(int B_, int n_, int G, int Gl = 0, bool shared = false, int pose_rows = 4) {
         B = B_;
         n = n_;
         shared_grid = shared;
         agent_mask.assign((size_t)B * n, 0.0f);
         slot.assign((size_t)B * n, 0);
         count.assign(B, 0);
-        pose.setZero(4, B * n);
+        pose.setZero(pose_rows, B * n);
         grid.setZero(1, (long)G * G * grid_scenes());
         local.setZero(1, (long)Gl * Gl * B * n);
         origin.assign(B, Vec2{0, 0});
         goal_final.assign((size_t)B * n, 1.0f);
         noise_seed.clear();
     }
-    void resize(int B_, int n_, const ModelConfig& c, bool shared = false) { resize(B_, n_, c.grid, c.local_grid, shared); }
+    void resize(int B_, int n_, const ModelConfig& c, bool shared = false) { resize(B_, n_, c.grid, c.local_grid, shared, c.pose_rows()); }
 };
 
 // ---------------------------------------------------------------------------------------------
@@ -1961,15 +1974,17 @@ inline RouteGoal route_goal(RouteGuide& guide, const ModelConfig& c, const World
 
 // Agent column a (scene a / n, whose origin is set): active, with PE_agent slot `slot`, its
 // position and goal normalised from the scene's origin, whether that goal is its real one
-// (`final`; a subgoal's end is never pinned), and its own crop of the map (when the model has one).
+// (`final`; a subgoal's end is never pinned), its velocity (only with velocity_context), and its
+// own crop of the map (when the model has one).
 inline void encode_agent(SceneBatch& batch, int a, int slot, Vec2 pos, Vec2 goal, const WorldMap& map, const ModelConfig& c,
-                         bool final = true) {
+                         bool final = true, Vec2 vel = {0, 0}) {
     const Vec2 o = batch.origin[a / batch.n], p = pos - o, g = goal - o;
     batch.agent_mask[a] = 1;
     batch.slot[a] = slot;
     batch.goal_final[a] = final ? 1.0f : 0.0f;
-    batch.pose.col(a) << (float)(p.x / c.position_scale), (float)(p.y / c.position_scale), (float)(g.x / c.position_scale),
+    batch.pose.col(a).head<4>() << (float)(p.x / c.position_scale), (float)(p.y / c.position_scale), (float)(g.x / c.position_scale),
         (float)(g.y / c.position_scale);
+    if (c.velocity_context) batch.pose.col(a).tail<2>() << (float)(vel.x * c.velocity_unit()), (float)(vel.y * c.velocity_unit());
     if (c.local_grid > 0) local_crop(map, pos, c.local_grid, c.local_extent, batch.local.data() + (long)a * c.local_grid * c.local_grid);
 }
 
@@ -1981,7 +1996,7 @@ inline float default_goal_reach(const ModelConfig& c) { return (float)(0.55 * (c
 // sampler inpaints it with the goal, `*end` (normalised displacement units).
 inline bool end_pinned(const SceneBatch& batch, int a, const ModelConfig& c, float reach, Eigen::Vector2f* end = nullptr) {
     if (batch.goal_final[a] == 0) return false;
-    const Eigen::Vector2f to_goal = (batch.pose.col(a).tail<2>() - batch.pose.col(a).head<2>()) * c.position_scale;
+    const Eigen::Vector2f to_goal = (batch.pose.col(a).segment<2>(2) - batch.pose.col(a).head<2>()) * c.position_scale;
     if (to_goal.norm() > reach) return false;
     if (end) *end = to_goal / c.window_scale;
     return true;
@@ -2280,7 +2295,7 @@ struct ContextEncoder {
         g2 = Conv2d(ps, "ctx.grid2", 16, 32, 3, 2, 1, rng);
         g3 = Conv2d(ps, "ctx.grid3", 32, D, 3, 2, 1, rng);
         pe_img = Embedding(ps, "ctx.pe_img", c.image_tokens(), D, rng);
-        pose1 = Linear(ps, "ctx.pose1", 4, D, rng);
+        pose1 = Linear(ps, "ctx.pose1", c.pose_rows(), D, rng);
         pose2 = Linear(ps, "ctx.pose2", D, D, rng);
         if (c.local_grid > 0) {
             l1 = Conv2d(ps, "ctx.local1", 1, 8, 3, 2, 1, rng);
@@ -2589,7 +2604,7 @@ private:
         if (b.B < 1 || b.n < 1) throw std::invalid_argument("scene batch: needs B >= 1 and n >= 1");
         if (b.n > config.n_max)
             throw std::invalid_argument("scene batch: " + std::to_string(b.n) + " agent slots exceed the model's n_max = " + std::to_string(config.n_max));
-        if ((long)b.agent_mask.size() != A || (long)b.slot.size() != A || (long)b.count.size() != b.B || b.pose.rows() != 4 ||
+        if ((long)b.agent_mask.size() != A || (long)b.slot.size() != A || (long)b.count.size() != b.B || b.pose.rows() != config.pose_rows() ||
             b.pose.cols() != A || b.grid.rows() != 1 || b.grid.cols() != (long)config.grid * config.grid * b.grid_scenes() ||
             b.local.cols() != (long)config.local_grid * config.local_grid * A || (long)b.origin.size() != b.B ||
             (long)b.goal_final.size() != A || (!b.noise_seed.empty() && (long)b.noise_seed.size() != b.B))
@@ -2892,7 +2907,7 @@ inline void repeat_scenes(const SceneBatch& src, int k, SceneBatch& dst) {
     dst.agent_mask.resize((size_t)Bk * n);
     dst.slot.resize((size_t)Bk * n);
     dst.count.resize(Bk);
-    dst.pose.resize(4, (long)Bk * n);
+    dst.pose.resize(src.pose.rows(), (long)Bk * n);
     dst.grid.resize(1, G2 * dst.grid_scenes());
     dst.local.resize(1, L * Bk * n);
     dst.origin.resize(Bk);
@@ -3102,6 +3117,7 @@ public:
     // Another robot as one robot knows it: position and goal as received from it.
     struct Neighbour {
         Vec2 pos, goal;
+        Vec2 vel = {0, 0};  // read only by a model with ModelConfig::velocity_context
     };
     SamplerConfig sampler;
     // Who plans with whom. 0: the whole team in one scene (the paper's). K > 0: neighbourhood
@@ -3170,10 +3186,12 @@ public:
         const bool local = neighbours != 0 && (K < n || world.map().half_size > model_.config.position_scale * (1 + 1e-9));
         pos_.resize(n);
         goal_.resize(n);
+        vel_.resize(n);
         ids_.resize(n);
         for (int i = 0; i < n; ++i) {
             pos_[i] = world.agents()[i].pos;
             goal_[i] = world.agents()[i].goal;
+            vel_[i] = world.agents()[i].vel;
             ids_[i] = world.agents()[i].id;
         }
         plan_scenes(world.map(), n, local ? n : 1, K, local);
@@ -3189,7 +3207,9 @@ public:
     // the draw (use the robot's id): with the same planner seed, and `others` in the world's agent
     // order, the window equals the one plan() gives this robot under neighbourhood planning (K =
     // neighbourhood size of an automatic or set `neighbours`; the whole team when neighbours = 0).
-    void plan_robot(const WorldMap& map, int id, Vec2 pos, Vec2 goal, const std::vector<Neighbour>& others, std::vector<Vec2>& window) {
+    // `vel` (and Neighbour::vel) is read only by a model with ModelConfig::velocity_context.
+    void plan_robot(const WorldMap& map, int id, Vec2 pos, Vec2 goal, const std::vector<Neighbour>& others, std::vector<Vec2>& window,
+                    Vec2 vel = {0, 0}) {
         const int n = 1 + (int)others.size();
         for (int i = 0; i < n; ++i) {
             const Vec2 p = i ? others[i - 1].pos : pos, g = i ? others[i - 1].goal : goal;
@@ -3200,9 +3220,10 @@ public:
         const int K = neighbours == 0 ? n : std::min(neighbourhood_size(), n);
         pos_.resize(n);
         goal_.resize(n);
+        vel_.resize(n);
         ids_.resize(n);
-        pos_[0] = pos, goal_[0] = goal, ids_[0] = id;
-        for (int i = 1; i < n; ++i) pos_[i] = others[i - 1].pos, goal_[i] = others[i - 1].goal, ids_[i] = -1;
+        pos_[0] = pos, goal_[0] = goal, vel_[0] = vel, ids_[0] = id;
+        for (int i = 1; i < n; ++i) pos_[i] = others[i - 1].pos, goal_[i] = others[i - 1].goal, vel_[i] = others[i - 1].vel, ids_[i] = -1;
         plan_scenes(map, n, 1, std::min(K, n), /*local*/ true);
         decode_window(0, pos, window);
     }
@@ -3216,7 +3237,7 @@ private:
     bool grid_valid_ = false;
     Mat x_, eps_;
     std::vector<int> steps_, members_, ids_;
-    std::vector<Vec2> pos_, goal_;   // the robots planned for (ego first for plan_robot)
+    std::vector<Vec2> pos_, goal_, vel_;  // the robots planned for (ego first for plan_robot)
     std::vector<RouteGoal> route_;   // what each is told to head for (route_goal)
     RouteGuide guide_;               // route subgoals (ModelConfig::subgoal_distance)
     ConflictWorkspace conflict_;     // guidance and best-of-k (SamplerConfig::guidance, candidates)
@@ -3267,7 +3288,7 @@ private:
                     continue;
                 }
                 const int i = members_[k];
-                encode_agent(batch_, a, /*slot*/ k, pos_[i], route_[i].goal, map, c, route_[i].final);
+                encode_agent(batch_, a, /*slot*/ k, pos_[i], route_[i].goal, map, c, route_[i].final, vel_[i]);
             }
             batch_.count[b] = m;
         }

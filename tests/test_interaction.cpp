@@ -547,3 +547,58 @@ TEST_CASE("planner: conflict-aware plans allocate nothing in the steady state") 
     CHECK(planner.last_candidates().fields.clearance.built_for(w.map()));
     CHECK(planner.last_candidates().fields.goals.size() == 4);
 }
+
+TEST_CASE("velocity context: in the pose, mirrored in training, read by the planner; off by default") {
+    ModelConfig c = tiny_config();
+    CHECK_FALSE(c.velocity_context);
+    CHECK(c.pose_rows() == 4);
+    CHECK(c.to_metadata().count("velocity_context") == 0);  // files without it read as before
+    CHECK_FALSE(ModelConfig::from_metadata(c.to_metadata(), "t").velocity_context);
+    c.velocity_context = true;
+    CHECK(c.pose_rows() == 6);
+    CHECK(ModelConfig::from_metadata(c.to_metadata(), "t").velocity_context);
+    auto md = c.to_metadata();
+    md["velocity_context"] = "yes";
+    CHECK_THROWS_WITH_AS(ModelConfig::from_metadata(md, "f"), doctest::Contains("'velocity_context'"), std::runtime_error);
+    // A velocity in pose units is the window's displacement at it: H = 8 steps of dt = 0.1.
+    CHECK(c.velocity_unit() == doctest::Approx(7 * 0.1 / c.window_scale));
+    SceneBatch s;
+    s.resize(1, 2, c);
+    REQUIRE(s.pose.rows() == 6);
+    encode_agent(s, 0, 0, {0.1, 0}, {0.5, 0}, WorldMap{}, c, true, {0.3, -0.2});
+    CHECK(s.pose(2, 0) == doctest::Approx(0.5 / c.position_scale));  // the goal rows stay where they were
+    CHECK(s.pose(4, 0) == doctest::Approx(0.3 * c.velocity_unit()));
+    CHECK(s.pose(5, 0) == doctest::Approx(-0.2 * c.velocity_unit()));
+    // Training reads each robot's velocity at the window's first frame, mirrored with the scene.
+    DemoSet demos;
+    Demonstration d;
+    d.map = WorldMap{};
+    d.agents = 1, d.steps = 20, d.success = true;
+    d.goals = {{0.8, 0.4}};
+    for (int t = 0; t <= 20; ++t) d.pos.push_back({-0.8 + 0.02 * t, -0.4 + 0.01 * t}), d.vel.push_back({0.2 + 0.01 * t, 0.1});
+    demos.episodes = {d};
+    TrainConfig tc;
+    tc.batch = 16;
+    Rng rng(1);
+    TrainBatch tb;
+    make_train_batch(demos, {{0, 5}}, c, tc, 1, rng, tb);
+    for (int b = 0; b < tc.batch; ++b) {
+        const float mx = tb.origin(0, b) > 0 ? -1.0f : 1.0f, my = tb.origin(1, b) > 0 ? -1.0f : 1.0f;  // the scene's mirror
+        CHECK(tb.scene.pose(4, b * tb.scene.n) == doctest::Approx(mx * 0.25 * c.velocity_unit()));
+        CHECK(tb.scene.pose(5, b * tb.scene.n) == doctest::Approx(my * 0.1 * c.velocity_unit()));
+    }
+    // The planner reads the robots' velocities: the same scene, moving, plans another window.
+    World w = make_random_world("empty", 2, 1);
+    DiffusionPlanner still(MadbpModel(c, 3), 5), moving(MadbpModel(c, 3), 5);
+    const Plan a = still.plan(w);
+    w.set_state(w.agents()[0].id, w.agents()[0].pos, {0.3, 0});
+    const Plan b = moving.plan(w);
+    CHECK(norm(a.waypoints[0][3] - b.waypoints[0][3]) > 1e-6);
+    // Without the context, velocities change nothing.
+    c.velocity_context = false;
+    DiffusionPlanner p1(MadbpModel(c, 3), 5), p2(MadbpModel(c, 3), 5);
+    const Plan e = p1.plan(w);
+    w.set_state(w.agents()[0].id, w.agents()[0].pos, {0, 0});
+    const Plan f = p2.plan(w);
+    CHECK(norm(e.waypoints[0][3] - f.waypoints[0][3]) == 0);
+}

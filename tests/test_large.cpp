@@ -200,9 +200,12 @@ TEST_CASE("large: the new model fields round-trip through checkpoints; a 0.1 che
 }
 
 TEST_CASE("large: a robot planning for itself gets the window the team plan gives it (same seed)") {
-    const ModelConfig c = local_config();
     World world = make_random_world("obstacles", 5, 4, 2.4);
+    for (const Agent& a : world.agents()) world.set_state(a.id, a.pos, {0.05 * a.id - 0.1, 0.03 * a.id});  // moving robots
+    for (bool velocity : {false, true})
     for (bool conflict_aware : {false, true}) {
+        ModelConfig c = local_config();
+        c.velocity_context = velocity;  // then the velocities travel in Neighbour::vel and plan_robot's vel
         DiffusionPlanner team(MadbpModel(c, 2), 9);
         if (conflict_aware) team.sampler.guidance = 0.004f, team.sampler.candidates = 2;
         const Plan plan = team.plan(world);
@@ -211,17 +214,17 @@ TEST_CASE("large: a robot planning for itself gets the window the team plan give
             robot.sampler = team.sampler;
             std::vector<DiffusionPlanner::Neighbour> others;
             for (int j = 0; j < world.size(); ++j)
-                if (j != i) others.push_back({world.agents()[j].pos, world.agents()[j].goal});
+                if (j != i) others.push_back({world.agents()[j].pos, world.agents()[j].goal, world.agents()[j].vel});
             std::vector<Vec2> window;
             const Agent& me = world.agents()[i];
-            robot.plan_robot(world.map(), me.id, me.pos, me.goal, others, window);
+            robot.plan_robot(world.map(), me.id, me.pos, me.goal, others, window, me.vel);
             REQUIRE(window.size() == plan.waypoints[i].size());
             double worst = 0;
             for (size_t t = 0; t < window.size(); ++t) worst = std::max(worst, norm(window[t] - plan.waypoints[i][t]));
             CHECK(worst < 1e-4);  // one scene alone vs in a batch: the same numbers up to float summation order
         }
     }
-    DiffusionPlanner robot(MadbpModel(c, 2), 9);
+    DiffusionPlanner robot(MadbpModel(local_config(), 2), 9);
     std::vector<Vec2> window;
     CHECK_THROWS_WITH_AS(robot.plan_robot(world.map(), 0, {0, 0}, {1, 1}, {{Vec2{NAN, 0}, Vec2{0, 0}}}, window),
                          doctest::Contains("neighbour 0"), std::invalid_argument);
