@@ -133,6 +133,18 @@ inline std::vector<std::pair<std::string, double>> parse_scenario_mix(const std:
     return mix;
 }
 
+// --maps LIST (default empty,obstacles,barrier); an unknown name fails here, before any work.
+inline std::vector<std::string> read_maps(Args& a) {
+    std::vector<std::string> maps;
+    std::stringstream ss(a.str("--maps", "empty,obstacles,barrier"));
+    for (std::string m; std::getline(ss, m, ',');) {
+        madbp::Rng probe(0);
+        madbp::make_map(m, probe);
+        maps.push_back(m);
+    }
+    return maps;
+}
+
 inline int cmd_collect(Args& a) {
     if (a.flag("--help")) {
         std::printf(
@@ -153,14 +165,7 @@ inline int cmd_collect(Args& a) {
     }
     madbp::CollectConfig c;
     std::string dem = a.str("--demonstrator", "expert");
-    std::string maps = a.str("--maps", "empty,obstacles,barrier");
-    c.maps.clear();
-    std::stringstream ss(maps);
-    for (std::string m; std::getline(ss, m, ',');) {
-        madbp::Rng probe(0);
-        madbp::make_map(m, probe);  // unknown names fail here, before any work
-        c.maps.push_back(m);
-    }
+    c.maps = read_maps(a);
     c.n_train_max = (int)a.integer("--n-train-max", 4, 1, 64);
     c.scenarios = parse_scenario_mix(a.str("--scenarios", ""));
     c.episodes = (int)a.integer("--episodes", 500, 1, 10000000);
@@ -328,14 +333,7 @@ inline int cmd_dagger(Args& a) {
     c.train.resume = a.flag("--resume");
     c.rounds = (int)a.integer("--rounds", 3, 1, 1000);
     c.rollouts.episodes = (int)a.integer("--episodes", 40, 1, 1000000);
-    std::string maps = a.str("--maps", "empty,obstacles,barrier");
-    c.rollouts.maps.clear();
-    std::stringstream ss(maps);
-    for (std::string m; std::getline(ss, m, ',');) {
-        madbp::Rng probe(0);
-        madbp::make_map(m, probe);  // unknown names fail here, before any work
-        c.rollouts.maps.push_back(m);
-    }
+    c.rollouts.maps = read_maps(a);
     c.rollouts.n_train_max = (int)a.integer("--n-train-max", 4, 1, 64);
     c.rollouts.scenarios = parse_scenario_mix(a.str("--scenarios", "all:0.3"));
     c.label_every = (int)a.integer("--label-every", 2, 1, 1000);
