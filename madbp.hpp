@@ -77,7 +77,7 @@
 //        BatchNorm statistics in ParamStore::state; optimizer-state I/O moved to madbp_train.hpp.
 //        The Local scene frame, route subgoals and ModelConfig::n_train_max (new metadata, absent
 //        = the 0.1 behaviour); automatic neighbourhoods, plan_robot; the planner samples with
-//        guidance kDefaultGuidance.
+//        guidance kDefaultGuidance. ModelConfig::velocity_context (an option; off in shipped models).
 //   0.1  neural-network core, safetensors checkpoints, MA-DBP model, DDIM sampler, planner.
 
 #ifndef MADBP_HPP

@@ -19,7 +19,8 @@
 //
 // Changelog
 //   0.2  ProgressFn instead of printing; Policy::decision_ms; Map is now WorldMap (no clash with
-//        Eigen::Map), with operator==; local_crop here.
+//        Eigen::Map), with operator==; local_crop here. PlanFollower weighs robots in its safety
+//        filter as the guided expert does (FollowerConfig::priority_weight = 4; 1 = the 0.1 filter).
 //   0.1  world, maps, controllers.
 
 #ifndef MADBP_SIM_HPP

@@ -14,6 +14,8 @@
 //   madbp::save_demos("demos.bin", demos);
 //   madbp::TrainConfig tc;  tc.out = "model.safetensors";
 //   madbp::train(demos, madbp::ModelConfig{}, tc);             // writes model + training state
+//   madbp::DaggerConfig dg; dg.train.out = "dagger.safetensors";  // rounds of rollouts + expert labels
+//   madbp::dagger(demos, model, dg, learner);                  // learner(model) -> PolicyFactory
 //   madbp::MappoConfig mc; mc.map = "empty"; mc.agents = 4; madbp::train_mappo(mc);   // MAPPO
 //   madbp::MadiffConfig dc; dc.agents = 2; madbp::MadiffTrainConfig dt; dt.out = "madiff.safetensors";
 //   madbp::train_madiff(demos, dc, dt);                        // MADiff baseline (SPEC 3.4)
@@ -23,10 +25,13 @@
 // Changelog
 //   0.2  TrainState: one resumable-state scaffold with run identity for train, train_mappo and
 //        train_madiff; Curve records (the tool draws the charts); ProgressFn; grad_clip names.
+//        DAgger (dagger, expert_label, dagger_rollouts); make_windows takes only the complete
+//        windows of unsuccessful recordings; for_each_collect_episode.
 //   0.1  demonstrations, datasets, losses, training, MAPPO, MADiff.
 //
 // Contents (SPEC sections of docs/design.md in brackets)
-//   1 demonstrations: Demonstration, DemoSet, CollectConfig, collect_demonstrations       [7]
+//   1 demonstrations: Demonstration, DemoSet, CollectConfig, for_each_collect_episode,
+//     collect_demonstrations                                                                [7]
 //   2 datasets: demos_bytes, save_demos, load_demos, validate_demos                        [11]
 //   3 losses: boundary_loss, temporal_loss, collision_loss                                  [7]
 //   4 training batches: TrainConfig, WindowRef, DemoRoutes, route_demos, TrainBatch,
@@ -35,6 +40,7 @@
 //   6 training scaffold: optimizer-state I/O (append/read_adam, _ema, _rng), Curve,
 //     content_hash, TrainState (identity, resume, atomic state files)                      [11, 12]
 //   7 training: TrainReport, curriculum_agents, train_identity, train                       [7]
+//   7b DAgger: expert_label, dagger_rollouts, DaggerConfig, DaggerRound, dagger (issue 12)
 //   8 MAPPO: observations, MappoNet, PPO loss, MappoConfig, train_mappo, MappoPolicy        [3.3]
 //   9 MADiff: MadiffConfig, InverseDynamics, MadiffModel, data, loss, train_madiff,
 //     MadiffPolicy                                                                          [3.4]
