@@ -657,8 +657,8 @@ inline void make_train_batch(const DemoSet& demos, const std::vector<WindowRef>&
             const Vec2 start = mir(d.position(ref.t, src));
             const RouteGoal rg = routes && mc.subgoal_distance > 0 ? routes->get(d, ref.episode, ref.t, src)
                                                                    : route_goal(guide, mc, d.map, d.position(ref.t, src), d.goals[src]);
-            encode_agent(tb.scene, a, slots[i], start, mir(rg.goal), tb.maps[b], mc, rg.final,
-                         mir(d.vel[(size_t)std::min(ref.t, d.steps) * d.agents + src]));
+            const Vec2 vel = mc.velocity_context ? mir(d.vel.at((size_t)std::min(ref.t, d.steps) * d.agents + src)) : Vec2{0, 0};
+            encode_agent(tb.scene, a, slots[i], start, mir(rg.goal), tb.maps[b], mc, rg.final, vel);
             tb.origin.col(a) << (float)start.x, (float)start.y;
             for (int t = 0; t < H; ++t) {
                 const Vec2 p = mir(d.position(ref.t + t * stride, src)) - start;
