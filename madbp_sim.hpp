@@ -1406,6 +1406,24 @@ struct LinePlanner {
     }
 };
 
+// Priorities of the guided expert and the plan follower (one rule for both): robots still
+// travelling go before robots at their goals, then the larger `key` (how far the robot had to
+// go when first seen), then the lower id. `order` receives agents() indices, first first.
+inline void priority_order(const World& world, const std::function<double(const Agent&)>& key, std::vector<int>& order) {
+    const auto& ag = world.agents();
+    order.resize(ag.size());
+    for (size_t i = 0; i < ag.size(); ++i) order[i] = (int)i;
+    std::sort(order.begin(), order.end(), [&](int a, int b) {
+        const bool ra = world.at_goal(ag[a]), rb = world.at_goal(ag[b]);
+        if (ra != rb) return rb;
+        const double ka = key(ag[a]), kb = key(ag[b]);
+        if (ka != kb) return ka > kb;
+        return ag[a].id < ag[b].id;
+    });
+}
+// Safety-filter weight of rank `rank` of n: `first` for rank 0, falling linearly to 1.
+inline double priority_weight_of(int rank, int n, double first) { return n > 1 ? 1 + (first - 1) * (n - 1 - rank) / (n - 1) : 1.0; }
+
 // Executes plans (SPEC 8): replans every `replan_every` steps (and whenever the set of agents
 // changed or the window ran out), tracks the waypoints with the tracker, then applies the
 // safety filter when enabled. Make one per episode.
@@ -1465,21 +1483,12 @@ public:
     std::vector<double> filter_weights(const World& world) {
         const int n = world.size();
         if (cfg_.priority_weight == 1 || n < 2) return {};
-        const auto& ag = world.agents();
-        std::vector<int> order(n);
-        for (int i = 0; i < n; ++i) {
-            order[i] = i;
-            if (!first_distance_.count(ag[i].id)) first_distance_[ag[i].id] = norm(ag[i].goal - ag[i].pos);
-        }
-        std::sort(order.begin(), order.end(), [&](int a, int b) {
-            const bool ra = world.at_goal(ag[a]), rb = world.at_goal(ag[b]);
-            if (ra != rb) return rb;
-            const double da = first_distance_[ag[a].id], db = first_distance_[ag[b].id];
-            if (da != db) return da > db;
-            return ag[a].id < ag[b].id;
-        });
+        for (const Agent& a : world.agents())
+            if (!first_distance_.count(a.id)) first_distance_[a.id] = norm(a.goal - a.pos);
+        std::vector<int> order;
+        priority_order(world, [&](const Agent& a) { return first_distance_[a.id]; }, order);
         std::vector<double> w(n);
-        for (int rank = 0; rank < n; ++rank) w[order[rank]] = 1 + (cfg_.priority_weight - 1) * (n - 1 - rank) / (n - 1);
+        for (int rank = 0; rank < n; ++rank) w[order[rank]] = priority_weight_of(rank, n, cfg_.priority_weight);
         return w;
     }
 
@@ -1845,8 +1854,7 @@ public:
             Vec2 w1 = w[std::min(k, last)];
             Vec2 v_ref = k + 1 <= last ? model.steady_velocity(w[k + 1] - w1) : Vec2{0, 0};
             u[i] = track_waypoint(ag[i].pos, ag[i].vel, w1, v_ref, model, prm_.tracker, world.config().max_action);
-            // Rank 0 (highest priority) weighs priority_weight, the last rank 1.
-            weight[i] = n > 1 ? 1 + (prm_.priority_weight - 1) * (n - 1 - rank_[pi]) / (n - 1) : 1.0;
+            weight[i] = priority_weight_of(rank_[pi], n, prm_.priority_weight);
         }
         return safety_filter(world, u, prm_.filter, weight);
     }
@@ -1904,22 +1912,14 @@ private:
         const int T_world = std::min(std::max(1, world.config().max_steps - world.t()), kExpertMaxHorizon) + prm_.extra_horizon;
         const int T = grid_.stretch > 1 ? std::max(1, (int)std::ceil(T_world / grid_.stretch)) : T_world;
         reserved_.assign((size_t)(T + 1) * N, 0);
-        // Priority order.
-        std::vector<int> order(n);
-        for (int i = 0; i < n; ++i) {
-            order[i] = i;
+        // Priority order: the longest wavefront path from where the robot was first seen goes first.
+        for (int i = 0; i < n; ++i)
             if (!initial_steps_.count(ag[i].id)) {
                 int s = field(grid_.index(ag[i].goal))[grid_.index(ag[i].pos)];
                 initial_steps_[ag[i].id] = s >= 0 ? s : 1 << 20;
             }
-        }
-        std::sort(order.begin(), order.end(), [&](int a, int b) {
-            bool ra = world.at_goal(ag[a]), rb = world.at_goal(ag[b]);
-            if (ra != rb) return rb;
-            int sa = initial_steps_[ag[a].id], sb = initial_steps_[ag[b].id];
-            if (sa != sb) return sa > sb;
-            return ag[a].id < ag[b].id;
-        });
+        std::vector<int> order;
+        priority_order(world, [&](const Agent& a) { return (double)initial_steps_[a.id]; }, order);
         // Offsets of the reservation disc.
         std::vector<std::pair<int, int>> disc;
         int R = (int)std::ceil((2 * r + prm_.buffer) / grid_.cell);
