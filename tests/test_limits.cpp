@@ -6,6 +6,7 @@
 // terabytes of virtual memory. The whole file runs in a few seconds.
 #include "madbp_train.hpp"
 #include "methods.hpp"  // the tool's Args, read_planner_options, refuse_scene_overrides
+#include "tiny_model.hpp"
 
 #include <doctest/doctest.h>
 
@@ -115,21 +116,6 @@ std::string capped(size_t extra_mib, const std::function<std::string()>& fn) {
     if (!WIFEXITED(status) || WEXITSTATUS(status) != 0)
         out += "died: " + (WIFSIGNALED(status) ? "signal " + std::to_string(WTERMSIG(status)) : "exit " + std::to_string(WEXITSTATUS(status)));
     return out;
-}
-
-ModelConfig tiny_config() {
-    ModelConfig c;
-    c.horizon = 8;
-    c.dim = 16;
-    c.heads = 2;
-    c.n_max = 4;
-    c.grid = 16;
-    c.local_grid = 8;
-    c.channels = {8, 16};
-    c.kernel = 3;
-    c.diffusion_steps = 20;
-    c.sample_steps = 5;
-    return c;
 }
 
 // A small valid model file whose metadata is then rewritten with `changes`.

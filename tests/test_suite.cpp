@@ -8,6 +8,7 @@
 #include <sstream>
 
 #include "suite.hpp"
+#include "tiny_model.hpp"
 
 using namespace madbp_cli;
 
@@ -32,17 +33,10 @@ long count_lines(const std::string& text, const std::string& prefix) {
     return k;
 }
 
+// The shared tiny model, with room for the suite's teams of 8 and a shorter sampler.
 madbp::ModelConfig tiny_model_config() {
-    madbp::ModelConfig c;
-    c.horizon = 8;
-    c.dim = 16;
-    c.heads = 2;
+    madbp::ModelConfig c = tiny_config();
     c.n_max = 8;
-    c.grid = 16;
-    c.local_grid = 0;
-    c.channels = {8, 16};
-    c.kernel = 3;
-    c.diffusion_steps = 20;
     c.sample_steps = 3;
     return c;
 }

@@ -5,25 +5,11 @@
 #include <fstream>
 
 #include "madbp_train.hpp"
+#include "tiny_model.hpp"
 
 using namespace madbp;
 
 namespace {
-
-ModelConfig tiny_config() {
-    ModelConfig c;
-    c.horizon = 8;
-    c.dim = 16;
-    c.heads = 2;
-    c.n_max = 6;
-    c.grid = 8;
-    c.local_grid = 8;
-    c.channels = {8, 16};
-    c.kernel = 3;
-    c.diffusion_steps = 20;
-    c.sample_steps = 5;
-    return c;
-}
 
 // A small expert dataset: empty and barrier maps, 1-2 agents, a few episodes each.
 const DemoSet& tiny_demos() {
@@ -286,7 +272,7 @@ TEST_CASE("training: killed after a checkpoint, resumed, ends where an uninterru
     refused(tr, fewer, "train.data");
     // A state file of another configuration is refused.
     ModelConfig other_config = tiny_config();
-    other_config.dim = 8;
+    other_config.dim = 16;
     MadbpModel wrong(other_config, 1);
     CHECK_THROWS_AS(train(demos, wrong, tr), std::runtime_error);
     remove_run(a);
