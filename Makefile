@@ -93,10 +93,16 @@ bench: all
 # episodes each, 30% of them interaction scenes: swaps, crossings, gaps, corridors, parked robots,
 # circles), then 20,000 steps of training on 2 data-parallel replicas in the Local scene frame
 # with route subgoals 1.5 units ahead (~12 min on 2 cores; docs/experiments.md "Deploy large").
+# The datasets are collected once into build/ (delete them to collect again); the paper models
+# below are trained on the same mix.
 MODEL_FLAGS ?= --steps 20000 --batch 64 --threads 2 --seed 0 --frame local --subgoal 1.5
-model: all
-	$(BUILD)/madbp collect --episodes 500 --threads 2 --seed 0 --scenarios all:0.3 --out $(BUILD)/demos.bin
-	$(BUILD)/madbp train --data $(BUILD)/demos.bin --out models/madbp-default.safetensors $(MODEL_FLAGS)
+DEMOS_FLAGS := --episodes 500 --threads 2 --seed 0 --scenarios all:0.3
+$(BUILD)/demos-mix.bin: | $(BUILD)/madbp
+	$(BUILD)/madbp collect $(DEMOS_FLAGS) --out $@
+$(BUILD)/demos-mix-empty.bin: | $(BUILD)/madbp
+	$(BUILD)/madbp collect --maps empty $(DEMOS_FLAGS) --out $@
+model: all $(BUILD)/demos-mix.bin
+	$(BUILD)/madbp train --data $(BUILD)/demos-mix.bin --out models/madbp-default.safetensors $(MODEL_FLAGS)
 	rm -f models/madbp-default.safetensors.train
 
 # DAgger (issue 12; docs/experiments.md "DAgger"): from the shipped model, 4 rounds of 480
@@ -104,9 +110,8 @@ model: all
 # steps per round (~12 min on 2 cores; resumable: rerun to continue). The measured run, with the
 # filter weights of the time (--priority-weight 1). It did not beat the shipped model, so its
 # output stays in build/.
-dagger: all
+dagger: all $(BUILD)/demos-mix.bin
 	@mkdir -p $(BUILD)/dagger
-	@[ -f $(BUILD)/demos-mix.bin ] || $(BUILD)/madbp collect --episodes 500 --threads 2 --seed 0 --scenarios all:0.3 --out $(BUILD)/demos-mix.bin
 	$(BUILD)/madbp dagger --data $(BUILD)/demos-mix.bin --out $(BUILD)/dagger/a.safetensors --rounds 4 --episodes 40 \
 	  --scenarios all:0.5 --steps 3000 --threads 2 --priority-weight 1 --resume
 
@@ -155,27 +160,25 @@ madiff-models: $(BUILD)/madbp
 	    --out models/madiff/$$map-$$n.safetensors; \
 	  rm -f models/madiff/$$map-$$n.safetensors.train; done
 
-# The models of the paper's figures (docs/evaluation.md; `madbp eval --suite paper` reads them):
-# Fig. 4 upscaling models trained on 1..k robots of all three maps (k = 4 is the default model),
-# and the ablations of Table II and the horizon sweep on the empty map (as the paper does).
-# Shorter training than the default model's 20,000 steps, to fit a 2-core session (~1 h).
-PAPER_FIG4_STEPS     ?= 6000
+# The models of the paper's figures (docs/evaluation.md; `madbp eval --suite paper` reads them),
+# with the default model's recipe (data mix, local frame, route subgoals): the Fig. 4 upscaling
+# models trained on 1..k robots of all three maps for as long as the default model (k = 4 is the
+# default model), and the ablations of Table II and the horizon sweep on the empty map (as the
+# paper does) with 2,000 steps each (~50 min on 2 cores in all).
 PAPER_ABLATION_STEPS ?= 2000
 PAPER_TRAIN          := --batch 64 --threads 2 --seed 0
-paper-models: all
+paper-models: all $(BUILD)/demos-mix.bin $(BUILD)/demos-mix-empty.bin
 	@mkdir -p models/paper
-	@[ -f $(BUILD)/demos.bin ] || $(BUILD)/madbp collect --episodes 500 --threads 2 --seed 0 --out $(BUILD)/demos.bin
-	@[ -f $(BUILD)/demos-empty.bin ] || $(BUILD)/madbp collect --maps empty --episodes 500 --threads 2 --seed 0 --out $(BUILD)/demos-empty.bin
 	@set -e; for k in 2 3; do \
-	  $(BUILD)/madbp train --data $(BUILD)/demos.bin --n-train-max $$k --steps $(PAPER_FIG4_STEPS) $(PAPER_TRAIN) \
+	  $(BUILD)/madbp train --data $(BUILD)/demos-mix.bin --n-train-max $$k $(MODEL_FLAGS) \
 	    --out models/paper/madbp-n$$k.safetensors; done
 	@set -e; for cfg in MW:AAP:16:64 MW:LE:16:64 CT:AAP:104:16 CT:LE:104:16; do IFS=: read win proc h batch <<< "$$cfg"; \
 	  for k in 2 3 4; do \
-	    $(BUILD)/madbp train --data $(BUILD)/demos-empty.bin --n-train-max $$k --steps $(PAPER_ABLATION_STEPS) $(PAPER_TRAIN) \
+	    $(BUILD)/madbp train --data $(BUILD)/demos-mix-empty.bin --n-train-max $$k --steps $(PAPER_ABLATION_STEPS) $(PAPER_TRAIN) \
 	      --window $$win --processor $$proc --horizon $$h --batch $$batch --out models/paper/ablation-$$win-$$proc-n$$k.safetensors; \
 	  done; done
 	@set -e; for h in 8 32; do \
-	  $(BUILD)/madbp train --data $(BUILD)/demos-empty.bin --n-train-max 4 --steps $(PAPER_ABLATION_STEPS) $(PAPER_TRAIN) \
+	  $(BUILD)/madbp train --data $(BUILD)/demos-mix-empty.bin --n-train-max 4 --steps $(PAPER_ABLATION_STEPS) $(PAPER_TRAIN) \
 	    --horizon $$h --out models/paper/ablation-MW-AAP-n4-h$$h.safetensors; done
 	rm -f models/paper/*.train
 
