@@ -65,7 +65,7 @@
 //   2 checkpoints: NamedTensor, SafeTensors, parse/serialize_safetensors, write_file_atomic,
 //     save/load_safetensors, param_tensors, read_param_tensors, save/load_params       [11]
 //   3 model inputs: ModelConfig (SceneFrame), SceneBatch, scene_origin, encode_map,
-//     route_goal, encode_agent, end_pinned                                              [5]
+//     route_goal, encode_agent, priority_values, end_pinned                             [5]
 //   4 model parts: ConvBlock, AgentAttention, FilmUNet, StepEmbedding, ContextEncoder,
 //     TrajectoryProcessor                                                              [5]
 //   5 the model: MadbpModel, save_model, load_model                                      [5, 11]
@@ -77,7 +77,8 @@
 //        BatchNorm statistics in ParamStore::state; optimizer-state I/O moved to madbp_train.hpp.
 //        The Local scene frame, route subgoals and ModelConfig::n_train_max (new metadata, absent
 //        = the 0.1 behaviour); automatic neighbourhoods, plan_robot; the planner samples with
-//        guidance kDefaultGuidance. ModelConfig::velocity_context (an option; off in shipped models).
+//        guidance kDefaultGuidance. ModelConfig::velocity_context and priority_context (options;
+//        off in shipped models; priority_values, Neighbour::id).
 //   0.1  neural-network core, safetensors checkpoints, MA-DBP model, DDIM sampler, planner.
 
 #ifndef MADBP_HPP
@@ -112,6 +113,7 @@
 #include <cstring>
 #include <fcntl.h>
 #include <limits>
+#include <climits>
 #include <map>
 #include <memory>
 #include <numeric>
@@ -1750,10 +1752,12 @@ struct ModelConfig {
                                        // along the route around the map (route_goal; world units)
     int n_train_max = 0;               // the largest team in training (metadata train.n_train_max; 0 = unknown)
     bool velocity_context = false;     // each robot's current velocity is in its pose (metadata "velocity_context")
+    bool priority_context = false;     // each robot's place in the guided expert's priority order is in its pose
+                                       // (priority_value; metadata "priority_context")
 
     int levels() const { return (int)channels.size(); }
-    // Rows of SceneBatch::pose: position, goal (and velocity).
-    int pose_rows() const { return velocity_context ? 6 : 4; }
+    // Rows of SceneBatch::pose: position, goal (then velocity, then priority, when in the context).
+    int pose_rows() const { return 4 + (velocity_context ? 2 : 0) + (priority_context ? 1 : 0); }
     // A velocity in pose units: the displacement over one window at that velocity, in window_scale
     // units (about 1 at the expert's cruising pace, like the window itself).
     double velocity_unit() const { return (horizon - 1) * waypoint_stride * WorldConfig{}.dt / window_scale; }
@@ -1801,6 +1805,7 @@ struct ModelConfig {
                 {"prediction", prediction == Prediction::Eps ? "eps" : "x0"}, {"local_grid", std::to_string(local_grid)},
                 {"local_extent", lext}, {"frame", frame == SceneFrame::World ? "world" : "local"}, {"subgoal_distance", sub}};
         if (velocity_context) md["velocity_context"] = "1";
+        if (priority_context) md["priority_context"] = "1";
         if (n_train_max > 0) md["train.n_train_max"] = std::to_string(n_train_max);  // training writes it too
         return md;
     }
@@ -1870,10 +1875,11 @@ struct ModelConfig {
         }
         if (md.count("subgoal_distance")) c.subgoal_distance = real("subgoal_distance");
         if (md.count("train.n_train_max")) c.n_train_max = integer("train.n_train_max");
-        if (md.count("velocity_context")) {
-            const std::string& v = get("velocity_context");
-            if (v != "0" && v != "1") throw std::runtime_error(source + ": metadata field 'velocity_context' must be 0 or 1");
-            c.velocity_context = v == "1";
+        for (const char* flag : {"velocity_context", "priority_context"}) {
+            if (!md.count(flag)) continue;
+            const std::string& v = get(flag);
+            if (v != "0" && v != "1") throw std::runtime_error(source + ": metadata field '" + flag + "' must be 0 or 1");
+            (std::string(flag) == "velocity_context" ? c.velocity_context : c.priority_context) = v == "1";
         }
         try { c.validate(); } catch (const std::invalid_argument& e) { throw std::runtime_error(source + ": " + e.what()); }
         return c;
@@ -1887,7 +1893,8 @@ struct SceneBatch {
     std::vector<int> slot;          // (A) PE_agent slot in [0, n_max), distinct within a scene
     std::vector<int> count;         // (B) active agents per scene (n_a)
     Mat pose;                       // (4, A) normalised current position x, y and goal x, y, from the scene's origin;
-                                    // (6, A) with ModelConfig::velocity_context: then velocity x, y (velocity_unit)
+                                    // then velocity x, y (velocity_unit) with ModelConfig::velocity_context, then
+                                    // priority_value with ModelConfig::priority_context
     Mat grid;                       // (1, G*G*B) occupancy grid per scene, column b*G*G + row*G + col
     Mat local;                      // (1, Gl*Gl*A) each agent's crop of the map (local_crop), when Gl > 0
     bool shared_grid = false;       // grid holds one map for every scene (planning only; encoded once)
@@ -1974,18 +1981,31 @@ inline RouteGoal route_goal(RouteGuide& guide, const ModelConfig& c, const World
 
 // Agent column a (scene a / n, whose origin is set): active, with PE_agent slot `slot`, its
 // position and goal normalised from the scene's origin, whether that goal is its real one
-// (`final`; a subgoal's end is never pinned), its velocity (only with velocity_context), and its
-// own crop of the map (when the model has one).
+// (`final`; a subgoal's end is never pinned), its velocity (only with velocity_context), its
+// priority_value (only with priority_context), and its own crop of the map (when the model has one).
 inline void encode_agent(SceneBatch& batch, int a, int slot, Vec2 pos, Vec2 goal, const WorldMap& map, const ModelConfig& c,
-                         bool final = true, Vec2 vel = {0, 0}) {
+                         bool final = true, Vec2 vel = {0, 0}, float priority = 1) {
     const Vec2 o = batch.origin[a / batch.n], p = pos - o, g = goal - o;
     batch.agent_mask[a] = 1;
     batch.slot[a] = slot;
     batch.goal_final[a] = final ? 1.0f : 0.0f;
     batch.pose.col(a).head<4>() << (float)(p.x / c.position_scale), (float)(p.y / c.position_scale), (float)(g.x / c.position_scale),
         (float)(g.y / c.position_scale);
-    if (c.velocity_context) batch.pose.col(a).tail<2>() << (float)(vel.x * c.velocity_unit()), (float)(vel.y * c.velocity_unit());
+    if (c.velocity_context) batch.pose.col(a).segment<2>(4) << (float)(vel.x * c.velocity_unit()), (float)(vel.y * c.velocity_unit());
+    if (c.priority_context) batch.pose(c.pose_rows() - 1, a) = priority;
     if (c.local_grid > 0) local_crop(map, pos, c.local_grid, c.local_extent, batch.local.data() + (long)a * c.local_grid * c.local_grid);
+}
+
+// The priority context (ModelConfig::priority_context) of a scene of m robots: their places in
+// the guided expert's priority order (priority_order: travelling first, then the longest route
+// from where each was first seen, then the lower id) as values from 1 (first) down to 0 (last;
+// 1 when alone). The expert's demonstrations decide who gives way by this order, which the
+// robots' positions alone leave open in a symmetric standoff. `values` receives m values.
+template <class AtGoal, class Key, class Id>
+void priority_values(int m, AtGoal at_goal, Key key, Id id, std::vector<int>& order, std::vector<float>& values) {
+    priority_order(m, at_goal, key, id, order);
+    values.resize(m);
+    for (int r = 0; r < m; ++r) values[order[r]] = m > 1 ? 1.0f - (float)r / (float)(m - 1) : 1.0f;
 }
 
 // About the distance a window covers at the expert's cruising pace (0.55 units for 15 steps).
@@ -3118,6 +3138,8 @@ public:
     struct Neighbour {
         Vec2 pos, goal;
         Vec2 vel = {0, 0};  // read only by a model with ModelConfig::velocity_context
+        int id = -1;        // read only by a model with ModelConfig::priority_context: its priority key is its
+                            // route when this planner first saw that id (-1: unknown, its route now)
     };
     SamplerConfig sampler;
     // Who plans with whom. 0: the whole team in one scene (the paper's). K > 0: neighbourhood
@@ -3188,12 +3210,12 @@ public:
         goal_.resize(n);
         vel_.resize(n);
         ids_.resize(n);
+        at_goal_.resize(n);
         for (int i = 0; i < n; ++i) {
-            pos_[i] = world.agents()[i].pos;
-            goal_[i] = world.agents()[i].goal;
-            vel_[i] = world.agents()[i].vel;
-            ids_[i] = world.agents()[i].id;
+            const Agent& a = world.agents()[i];
+            pos_[i] = a.pos, goal_[i] = a.goal, vel_[i] = a.vel, ids_[i] = a.id, at_goal_[i] = world.at_goal(a);
         }
+        priority_keys(world.map(), n);
         plan_scenes(world.map(), n, local ? n : 1, K, local);
         for (int i = 0; i < n; ++i) {
             out.ids[i] = ids_[i];
@@ -3207,7 +3229,8 @@ public:
     // the draw (use the robot's id): with the same planner seed, and `others` in the world's agent
     // order, the window equals the one plan() gives this robot under neighbourhood planning (K =
     // neighbourhood size of an automatic or set `neighbours`; the whole team when neighbours = 0).
-    // `vel` (and Neighbour::vel) is read only by a model with ModelConfig::velocity_context.
+    // `vel` (and Neighbour::vel) is read only by a model with ModelConfig::velocity_context, the
+    // ids only by one with ModelConfig::priority_context (the robot's own `id`, and Neighbour::id).
     void plan_robot(const WorldMap& map, int id, Vec2 pos, Vec2 goal, const std::vector<Neighbour>& others, std::vector<Vec2>& window,
                     Vec2 vel = {0, 0}) {
         const int n = 1 + (int)others.size();
@@ -3222,8 +3245,12 @@ public:
         goal_.resize(n);
         vel_.resize(n);
         ids_.resize(n);
+        at_goal_.resize(n);
         pos_[0] = pos, goal_[0] = goal, vel_[0] = vel, ids_[0] = id;
-        for (int i = 1; i < n; ++i) pos_[i] = others[i - 1].pos, goal_[i] = others[i - 1].goal, vel_[i] = others[i - 1].vel, ids_[i] = -1;
+        for (int i = 1; i < n; ++i)
+            pos_[i] = others[i - 1].pos, goal_[i] = others[i - 1].goal, vel_[i] = others[i - 1].vel, ids_[i] = others[i - 1].id;
+        for (int i = 0; i < n; ++i) at_goal_[i] = norm(pos_[i] - goal_[i]) < WorldConfig{}.goal_tolerance;
+        priority_keys(map, n);
         plan_scenes(map, n, 1, std::min(K, n), /*local*/ true);
         decode_window(0, pos, window);
     }
@@ -3238,9 +3265,27 @@ private:
     Mat x_, eps_;
     std::vector<int> steps_, members_, ids_;
     std::vector<Vec2> pos_, goal_, vel_;  // the robots planned for (ego first for plan_robot)
+    std::vector<char> at_goal_;
+    std::vector<double> key_;             // priority keys (ModelConfig::priority_context)
+    std::map<int, int> first_route_;      // id -> route steps when first seen
+    std::vector<int> order_;
+    std::vector<float> priority_;
     std::vector<RouteGoal> route_;   // what each is told to head for (route_goal)
     RouteGuide guide_;               // route subgoals (ModelConfig::subgoal_distance)
     ConflictWorkspace conflict_;     // guidance and best-of-k (SamplerConfig::guidance, candidates)
+
+    // key_: each robot's route steps (RouteGuide::route_steps) from where this planner first saw
+    // it; from where it is for a robot without an id.
+    void priority_keys(const WorldMap& map, int n) {
+        key_.resize(n);
+        if (!model_.config.priority_context) return;
+        for (int i = 0; i < n; ++i) {
+            if (ids_[i] < 0) { key_[i] = guide_.route_steps(map, pos_[i], goal_[i]); continue; }
+            auto it = first_route_.find(ids_[i]);
+            if (it == first_route_.end()) it = first_route_.emplace(ids_[i], guide_.route_steps(map, pos_[i], goal_[i])).first;
+            key_[i] = it->second;
+        }
+    }
 
     // Plans `scenes` scenes of at most K robots over pos_/goal_ (n robots): scene b is robot b
     // and its nearest within the sensing radius (local), or all n robots in order. x_ holds the
@@ -3278,6 +3323,9 @@ private:
             }
             batch_.origin[b] = scene_origin(c, m, [&](int k) { return pos_[members_[k]]; });
             if (!shared) encode_map(batch_, b, map, c);
+            if (c.priority_context)  // robots without an id after those with one, in their order
+                priority_values(m, [&](int k) { return at_goal_[members_[k]] != 0; }, [&](int k) { return key_[members_[k]]; },
+                                [&](int k) { const int i = members_[k]; return ids_[i] >= 0 ? (long)ids_[i] : (long)INT_MAX + i; }, order_, priority_);
             for (int k = 0; k < K; ++k) {
                 const int a = b * K + k;
                 if (k >= m) {  // an empty slot
@@ -3288,7 +3336,8 @@ private:
                     continue;
                 }
                 const int i = members_[k];
-                encode_agent(batch_, a, /*slot*/ k, pos_[i], route_[i].goal, map, c, route_[i].final, vel_[i]);
+                encode_agent(batch_, a, /*slot*/ k, pos_[i], route_[i].goal, map, c, route_[i].final, vel_[i],
+                             c.priority_context ? priority_[k] : 1.0f);
             }
             batch_.count[b] = m;
         }

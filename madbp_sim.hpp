@@ -21,6 +21,7 @@
 //   0.2  ProgressFn instead of printing; Policy::decision_ms; Map is now WorldMap (no clash with
 //        Eigen::Map), with operator==; local_crop here. PlanFollower weighs robots in its safety
 //        filter as the guided expert does (FollowerConfig::priority_weight = 4; 1 = the 0.1 filter).
+//        priority_order over any n robots; RouteGuide::route_steps (the expert's priority key).
 //   0.1  world, maps, controllers.
 
 #ifndef MADBP_SIM_HPP
@@ -1406,20 +1407,27 @@ struct LinePlanner {
     }
 };
 
-// Priorities of the guided expert and the plan follower (one rule for both): robots still
-// travelling go before robots at their goals, then the larger `key` (how far the robot had to
-// go when first seen), then the lower id. `order` receives agents() indices, first first.
+// Priorities of the guided expert, the plan follower and the model's priority context (one
+// rule for all): robots still travelling go before robots at their goals, then the larger `key`
+// (how far the robot had to go when first seen), then the lower id. `order` receives 0 .. n-1,
+// first first.
+template <class AtGoal, class Key, class Id>
+void priority_order(int n, AtGoal at_goal, Key key, Id id, std::vector<int>& order) {
+    order.resize(n);
+    for (int i = 0; i < n; ++i) order[i] = i;
+    std::sort(order.begin(), order.end(), [&](int a, int b) {
+        const bool ra = at_goal(a), rb = at_goal(b);
+        if (ra != rb) return rb;
+        const double ka = key(a), kb = key(b);
+        if (ka != kb) return ka > kb;
+        return id(a) < id(b);
+    });
+}
+// The same over a world's agents: `order` receives agents() indices.
 inline void priority_order(const World& world, const std::function<double(const Agent&)>& key, std::vector<int>& order) {
     const auto& ag = world.agents();
-    order.resize(ag.size());
-    for (size_t i = 0; i < ag.size(); ++i) order[i] = (int)i;
-    std::sort(order.begin(), order.end(), [&](int a, int b) {
-        const bool ra = world.at_goal(ag[a]), rb = world.at_goal(ag[b]);
-        if (ra != rb) return rb;
-        const double ka = key(ag[a]), kb = key(ag[b]);
-        if (ka != kb) return ka > kb;
-        return ag[a].id < ag[b].id;
-    });
+    priority_order((int)ag.size(), [&](int i) { return world.at_goal(ag[i]); }, [&](int i) { return key(ag[i]); },
+                   [&](int i) { return ag[i].id; }, order);
 }
 // Safety-filter weight of rank `rank` of n: `first` for rank 0, falling linearly to 1.
 inline double priority_weight_of(int rank, int n, double first) { return n > 1 ? 1 + (first - 1) * (n - 1 - rank) / (n - 1) : 1.0; }
@@ -1764,6 +1772,14 @@ public:
         return visible(a, b);
     }
     const ClearanceGrid& grid() const { return grid_; }
+    // Wavefront steps from p's cell to goal's, the guided expert's priority key (its plan cells
+    // and clearance); kRouteUnreachable when no route is known.
+    static constexpr int kRouteUnreachable = 1 << 20;
+    int route_steps(const WorldMap& map, Vec2 p, Vec2 goal) {
+        set_map(map);
+        const int s = field(grid_.index(goal))[grid_.index(p)];
+        return s >= 0 ? s : kRouteUnreachable;
+    }
 
 private:
     ClearanceGrid grid_;
@@ -1916,7 +1932,7 @@ private:
         for (int i = 0; i < n; ++i)
             if (!initial_steps_.count(ag[i].id)) {
                 int s = field(grid_.index(ag[i].goal))[grid_.index(ag[i].pos)];
-                initial_steps_[ag[i].id] = s >= 0 ? s : 1 << 20;
+                initial_steps_[ag[i].id] = s >= 0 ? s : RouteGuide::kRouteUnreachable;
             }
         std::vector<int> order;
         priority_order(world, [&](const Agent& a) { return (double)initial_steps_[a.id]; }, order);

@@ -206,6 +206,7 @@ TEST_CASE("large: a robot planning for itself gets the window the team plan give
     for (bool conflict_aware : {false, true}) {
         ModelConfig c = local_config();
         c.velocity_context = velocity;  // then the velocities travel in Neighbour::vel and plan_robot's vel
+        c.priority_context = velocity;  // and the ids in Neighbour::id and plan_robot's id
         DiffusionPlanner team(MadbpModel(c, 2), 9);
         if (conflict_aware) team.sampler.guidance = 0.004f, team.sampler.candidates = 2;
         const Plan plan = team.plan(world);
@@ -214,7 +215,7 @@ TEST_CASE("large: a robot planning for itself gets the window the team plan give
             robot.sampler = team.sampler;
             std::vector<DiffusionPlanner::Neighbour> others;
             for (int j = 0; j < world.size(); ++j)
-                if (j != i) others.push_back({world.agents()[j].pos, world.agents()[j].goal, world.agents()[j].vel});
+                if (j != i) others.push_back({world.agents()[j].pos, world.agents()[j].goal, world.agents()[j].vel, world.agents()[j].id});
             std::vector<Vec2> window;
             const Agent& me = world.agents()[i];
             robot.plan_robot(world.map(), me.id, me.pos, me.goal, others, window, me.vel);
