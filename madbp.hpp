@@ -1753,7 +1753,7 @@ struct ModelConfig {
     int n_train_max = 0;               // the largest team in training (metadata train.n_train_max; 0 = unknown)
     bool velocity_context = false;     // each robot's current velocity is in its pose (metadata "velocity_context")
     bool priority_context = false;     // each robot's place in the guided expert's priority order is in its pose
-                                       // (priority_value; metadata "priority_context")
+                                       // (priority_values; metadata "priority_context")
 
     int levels() const { return (int)channels.size(); }
     // Rows of SceneBatch::pose: position, goal (then velocity, then priority, when in the context).
@@ -1894,7 +1894,7 @@ struct SceneBatch {
     std::vector<int> count;         // (B) active agents per scene (n_a)
     Mat pose;                       // (4, A) normalised current position x, y and goal x, y, from the scene's origin;
                                     // then velocity x, y (velocity_unit) with ModelConfig::velocity_context, then
-                                    // priority_value with ModelConfig::priority_context
+                                    // priority_values with ModelConfig::priority_context
     Mat grid;                       // (1, G*G*B) occupancy grid per scene, column b*G*G + row*G + col
     Mat local;                      // (1, Gl*Gl*A) each agent's crop of the map (local_crop), when Gl > 0
     bool shared_grid = false;       // grid holds one map for every scene (planning only; encoded once)
@@ -1982,7 +1982,7 @@ inline RouteGoal route_goal(RouteGuide& guide, const ModelConfig& c, const World
 // Agent column a (scene a / n, whose origin is set): active, with PE_agent slot `slot`, its
 // position and goal normalised from the scene's origin, whether that goal is its real one
 // (`final`; a subgoal's end is never pinned), its velocity (only with velocity_context), its
-// priority_value (only with priority_context), and its own crop of the map (when the model has one).
+// priority_values entry (only with priority_context), and its own crop of the map (when the model has one).
 inline void encode_agent(SceneBatch& batch, int a, int slot, Vec2 pos, Vec2 goal, const WorldMap& map, const ModelConfig& c,
                          bool final = true, Vec2 vel = {0, 0}, float priority = 1) {
     const Vec2 o = batch.origin[a / batch.n], p = pos - o, g = goal - o;
@@ -3285,6 +3285,10 @@ private:
             if (it == first_route_.end()) it = first_route_.emplace(ids_[i], guide_.route_steps(map, pos_[i], goal_[i])).first;
             key_[i] = it->second;
         }
+        // Robots that left are forgotten once far more are remembered than present (dynamic teams).
+        if (first_route_.size() > 2 * (size_t)n + 256)
+            for (auto it = first_route_.begin(); it != first_route_.end();)
+                it = std::find(ids_.begin(), ids_.begin() + n, it->first) != ids_.begin() + n ? std::next(it) : first_route_.erase(it);
     }
 
     // Plans `scenes` scenes of at most K robots over pos_/goal_ (n robots): scene b is robot b
