@@ -3165,6 +3165,7 @@ public:
     MadbpModel& model() { return model_; }
     const SceneBatch& last_scene_batch() const { return batch_; }  // what the model saw in the last plan
     const ConflictWorkspace& last_candidates() const { return conflict_; }  // costs and choices of the last conflict-aware plan
+    size_t remembered_robots() const { return first_route_.size(); }  // priority keys held (ModelConfig::priority_context)
     void reseed(uint64_t seed) { rng_.reseed(seed); }
 
     // Robots per scene (at most) when planning a team of n in a world of half-size `half_size`,

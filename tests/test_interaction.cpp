@@ -684,6 +684,16 @@ TEST_CASE("priority context: the expert's order in the pose, in training and in 
     planner.plan(w);
     CHECK(value(0) == 0.0f);
     CHECK(value(1) == 1.0f);
+    // A team whose robots keep being replaced: the keys of robots that left are forgotten, so
+    // the memory stays bounded by the team, not by every robot ever seen.
+    for (int k = 0; k < 600; ++k) {
+        const int leaving = w.agents()[0].id;
+        w.remove_agent(leaving);
+        w.add_agent({-0.5, -0.6}, {0.5, 0.6}, 2 + k);
+        planner.plan(w);
+    }
+    CHECK(planner.remembered_robots() <= 2 * 2 + 256 + 1);
+    CHECK(planner.remembered_robots() >= 2);
     // Without the context the pose has no priority row.
     c.priority_context = false;
     DiffusionPlanner plain(MadbpModel(c, 3), 5);
