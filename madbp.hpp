@@ -1875,11 +1875,11 @@ struct ModelConfig {
         }
         if (md.count("subgoal_distance")) c.subgoal_distance = real("subgoal_distance");
         if (md.count("train.n_train_max")) c.n_train_max = integer("train.n_train_max");
-        for (const char* flag : {"velocity_context", "priority_context"}) {
+        for (const auto& [flag, field] : {std::pair<const char*, bool*>{"velocity_context", &c.velocity_context}, {"priority_context", &c.priority_context}}) {
             if (!md.count(flag)) continue;
             const std::string& v = get(flag);
-            if (v != "0" && v != "1") throw std::runtime_error(source + ": metadata field '" + flag + "' must be 0 or 1");
-            (std::string(flag) == "velocity_context" ? c.velocity_context : c.priority_context) = v == "1";
+            if (v != "0" && v != "1") throw std::runtime_error(source + ": metadata field '" + std::string(flag) + "' must be 0 or 1");
+            *field = v == "1";
         }
         try { c.validate(); } catch (const std::invalid_argument& e) { throw std::runtime_error(source + ": " + e.what()); }
         return c;

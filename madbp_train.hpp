@@ -1250,14 +1250,11 @@ inline DaggerRollouts dagger_rollouts(const CollectConfig& scenes, const PolicyF
     std::vector<Episode> got = for_each_collect_episode<Episode>(scenes, [&](World& w, uint64_t seed, const std::string& map_name) {
         std::unique_ptr<Policy> policy = learner(w, seed);
         Episode ep;
-        while (!w.done()) {
-            if (label_every > 0 && w.t() % label_every == 0) ep.labels.push_back(expert_label(w, label_steps(mc), expert, map_name));
-            std::vector<Vec2> u = policy->act(w);
-            for (Vec2& f : u) f = clamp_box(f, w.config().max_action);
-            w.step(u);
-        }
-        ep.success = w.metrics().success;
-        ep.collisions = w.metrics().collisions();
+        const EpisodeResult result = run_episode(w, *policy, /*record*/ false, [&](World& now) {
+            if (label_every > 0 && now.t() % label_every == 0) ep.labels.push_back(expert_label(now, label_steps(mc), expert, map_name));
+        });
+        ep.success = result.success;
+        ep.collisions = result.collisions();
         return ep;
     });
     DaggerRollouts r;
