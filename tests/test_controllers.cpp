@@ -269,6 +269,53 @@ TEST_CASE("PlanFollower: filter priorities break a symmetric standoff as the exp
     CHECK_THROWS_WITH_AS(PlanFollower(LinePlanner{}, bad), doctest::Contains("priority_weight"), std::invalid_argument);
 }
 
+TEST_CASE("PlanFollower: lookahead aims between later waypoints; in steady tracking the robot runs that far ahead") {
+    // One robot at rest, a plan along +x at half its top speed: waypoint k (0-based, the
+    // position after step k + 1) at 0.02 (k + 1).
+    World w;
+    w.add_agent({0, 0}, {1, 0});
+    auto along_x = [](const World&) {
+        Plan p;
+        p.ids = {0};
+        p.waypoints.resize(1);
+        for (int k = 0; k < 15; ++k) p.waypoints[0].push_back({0.02 * (k + 1), 0});
+        return p;
+    };
+    const StepModel model(w.config());
+    auto follower = [&](double lookahead) {
+        FollowerConfig fc;
+        fc.lookahead = lookahead;
+        fc.replan_every = 100;  // one plan: the window runs out after 15 steps
+        return PlanFollower(along_x, fc);
+    };
+    CHECK(FollowerConfig{}.lookahead == 1.5);
+    const Vec2 v_ref = model.steady_velocity({0.02, 0});
+    PlanFollower now = follower(0), ahead = follower(1.5), past_end = follower(100);
+    CHECK(norm(now.act(w)[0] - track_waypoint({0, 0}, {0, 0}, {0.02, 0}, v_ref, model, TrackerParams{})) < 1e-12);
+    // 1.5 steps ahead: halfway between waypoints 1 and 2, at 0.05.
+    CHECK(norm(ahead.act(w)[0] - track_waypoint({0, 0}, {0, 0}, {0.05, 0}, v_ref, model, TrackerParams{})) < 1e-12);
+    // Past the window's end: its last waypoint, at rest.
+    CHECK(norm(past_end.act(w)[0] - track_waypoint({0, 0}, {0, 0}, {0.30, 0}, {0, 0}, model, TrackerParams{})) < 1e-12);
+    // Closed loop: the robot accelerates at full force at first (both alike), then tracks. With
+    // lookahead 0 it ends on the waypoint planned for now; with 1.5 more than a step ahead of it.
+    auto ahead_of_plan = [&](double lookahead) {
+        World wl;
+        wl.add_agent({0, 0}, {1, 0});
+        PlanFollower f = follower(lookahead);
+        for (int t = 0; t < 12; ++t) wl.step(f.act(wl));
+        return wl.agents()[0].pos.x - 0.02 * 12;
+    };
+    const double on0 = ahead_of_plan(0), on15 = ahead_of_plan(1.5);
+    MESSAGE("ahead of the plan after 12 steps: " << on0 << " (lookahead 0), " << on15 << " (1.5)");
+    CHECK(std::fabs(on0) < 0.002);
+    CHECK(on15 > 0.02);
+    for (double bad : {-0.5, (double)NAN, 2 * kMaxLookahead}) {
+        FollowerConfig fc;
+        fc.lookahead = bad;
+        CHECK_THROWS_WITH_AS(PlanFollower(LinePlanner{}, fc), doctest::Contains("lookahead"), std::invalid_argument);
+    }
+}
+
 TEST_CASE("wavefront: steps around a wall, unreachable behind a closed one") {
     WorldMap m;
     m.boxes.push_back({{-1.2, -0.05}, {0.6, 0.05}});  // gap from 0.6 to 1.2 on the right

@@ -76,7 +76,8 @@ inline std::vector<Method> methods() {
                      madbp::FollowerConfig fc;
                      fc.safety_filter = s.filter;
                      fc.replan_every = s.replan;
-                     fc.priority_weight = 1;  // the SPEC 3.5 baseline as measured throughout: equal weights
+                     fc.priority_weight = 1;  // the SPEC 3.5 baseline as measured throughout: equal weights,
+                     fc.lookahead = 0;        // the waypoint planned for this step
                      return MethodSpec{[fc](const madbp::World&, uint64_t) {
                          return std::make_unique<madbp::PlanFollower>(madbp::LinePlanner{}, fc);
                      }};

@@ -22,6 +22,7 @@ struct PlannerOptions {
     int candidates = 1;        // SamplerConfig::candidates (1: off)
     madbp::WindowCost cost;    // SamplerConfig::cost
     double priority_weight = madbp::FollowerConfig{}.priority_weight;  // 1: the filter weighs robots equally
+    double lookahead = madbp::FollowerConfig{}.lookahead;  // 0: track the waypoint planned for this step
 };
 // "A,M,G": the agent, map and goal weights of the window cost.
 inline void read_cost_weights(const std::string& s, madbp::WindowCost& w) {
@@ -49,6 +50,7 @@ inline PlannerOptions read_planner_options(Args& a) {
     read_cost_weights(a.str("--cost-weights", ""), o.cost);
     o.cost.agent_margin = (float)a.real("--cost-margin", o.cost.agent_margin, 0, 10);
     o.priority_weight = a.real("--priority-weight", o.priority_weight, 1, 1000);
+    o.lookahead = a.real("--lookahead", o.lookahead, 0, madbp::kMaxLookahead);
     return o;
 }
 
@@ -61,6 +63,7 @@ inline madbp::PolicyFactory planner_factory(std::shared_ptr<const madbp::MadbpMo
     fc.safety_filter = s.filter;
     fc.replan_every = s.replan;
     fc.priority_weight = o.priority_weight;
+    fc.lookahead = o.lookahead;
     return [model, fc, o](const madbp::World&, uint64_t seed) -> std::unique_ptr<madbp::Policy> {
         auto planner = std::make_shared<madbp::DiffusionPlanner>(model->clone(), seed);
         if (o.sample_steps > 0) planner->sampler.sample_steps = o.sample_steps;
@@ -100,7 +103,8 @@ inline void register_nn_methods(std::vector<Method>& m) {
                  "                    (best of K windows per scene), --cost-weights A,M,G (robot-robot, robot-map,\n"
                  "                    goal; default 100,100,200), --cost-margin M (robot-robot, default 0.05),\n"
                  "                    --priority-weight W (safety-filter weight of the robot that goes first, as the\n"
-                 "                    expert's; default 4; 1 = all equal)",
+                 "                    expert's; default 4; 1 = all equal), --lookahead L (the tracker aims L steps\n"
+                 "                    ahead of the plan's waypoint for now; default 1.5, 0 = SPEC 8's)",
                  [](Args& a, const MethodSetup& s) { return madbp_method(read_planner_options(a), s); }});
 }
 
