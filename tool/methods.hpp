@@ -71,13 +71,13 @@ inline std::vector<Method> methods() {
                      p.drag_in_lfv = !a.flag("--clf-no-drag");
                      return MethodSpec{[p](const madbp::World&, uint64_t) { return std::make_unique<madbp::ClfQp>(p); }};
                  }});
-    m.push_back({"line", "straight-line plan + tracker (+ safety filter) (SPEC 3.5)",
-                 [](Args&, const MethodSetup& s) {
+    m.push_back({"line", "straight-line plan + tracker (+ safety filter) (SPEC 3.5); --lookahead L (default 0)",
+                 [](Args& a, const MethodSetup& s) {
                      madbp::FollowerConfig fc;
                      fc.safety_filter = s.filter;
                      fc.replan_every = s.replan;
                      fc.priority_weight = 1;  // the SPEC 3.5 baseline as measured throughout: equal weights,
-                     fc.lookahead = 0;        // the waypoint planned for this step
+                     fc.lookahead = a.real("--lookahead", 0, 0, madbp::kMaxLookahead);  // and the waypoint planned for this step
                      return MethodSpec{[fc](const madbp::World&, uint64_t) {
                          return std::make_unique<madbp::PlanFollower>(madbp::LinePlanner{}, fc);
                      }};
