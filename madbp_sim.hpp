@@ -22,6 +22,8 @@
 //        Eigen::Map), with operator==; local_crop here. PlanFollower weighs robots in its safety
 //        filter as the guided expert does (FollowerConfig::priority_weight = 4; 1 = the 0.1 filter).
 //        priority_order over any n robots; RouteGuide::route_steps (the expert's priority key).
+//        PlanFollower's tracker aims FollowerConfig::lookahead = 1.5 steps ahead of the plan
+//        (0 = the 0.1 follower), which makes up the lag a robot builds behind a moving plan.
 //   0.1  world, maps, controllers.
 
 #ifndef MADBP_SIM_HPP
