@@ -1451,10 +1451,11 @@ struct FollowerConfig {
     // (issue 12: corridor swaps of two robots .72-.84 -> .91-.98 with MA-DBP, docs/experiments.md).
     double priority_weight = 4;
     // Steps ahead of the plan's current waypoint that the tracker aims at, >= 0 (0: the
-    // waypoint planned for this step, SPEC 8). Under drag a robot reaches a moving waypoint
-    // late, 0.2 steps after one step and 0.7-0.95 after eight, and each replan starts from
-    // where the robot is, so the lag adds up: MA-DBP's robots took 4-13 % more steps than the
-    // expert's. 1.5 removes most of it (docs/experiments.md, "Tracking lookahead").
+    // waypoint planned for this step, SPEC 8). A robot falls behind a moving waypoint whenever
+    // the plan asks for more acceleration than |u| <= 1 gives (0.2 steps after one step, 0.7-0.95
+    // after eight), and each replan starts from where the robot is, so the lag adds up: MA-DBP's
+    // robots took 4-13 % more steps than the expert's. 1.5 removes most of it
+    // (docs/experiments.md, "Tracking lookahead").
     double lookahead = 1.5;
 };
 class PlanFollower : public Policy {
