@@ -142,7 +142,7 @@ inline std::string number_text(double v) {
 //   6 scene files: Scene, parse_scene, load_scene, scene_text, make_world        [2]
 //   7 controllers: Policy, StepModel                                             [3]
 //   8 CLF-QP: ClfQpParams, clf_qp_solve, clf_qp_action, ClfQp                    [3.1]
-//   9 tracker and safety filter: track_waypoint, safety_filter                  [3.2]
+//   9 tracker and safety filter: track_waypoint, track_plan, safety_filter                [3.2]
 //  10 plans: Plan, Planner, validate_plan, LinePlanner, PlanFollower             [3.2, 3.5, 8]
 //  11 episodes and evaluation: EpisodeLog, run_episode, evaluate                 [9, 10]
 //  12 guided expert: ClearanceGrid, wavefront, RouteGoal, RouteGuide (route subgoals),
@@ -1258,6 +1258,19 @@ inline Vec2 track_waypoint(Vec2 p, Vec2 v, Vec2 w1, Vec2 v_ref, const StepModel&
     Vec2 u = ((w1 - p - v * m.pv) * m.pu + (v_ref - v * m.vv) * (lam * m.vu)) / den;
     return clamp_box(u, lim);
 }
+// The tracker's action for robot `a` following the waypoints `w` of a plan (w[k]: where it is
+// planned to be after step k + 1), `ahead` steps into the plan: the point there (on the segment
+// between two waypoints for a fractional `ahead`; the last waypoint past the end), with the
+// plan's velocity there (toward the next waypoint; zero once the window ends).
+inline Vec2 track_plan(const Agent& a, const std::vector<Vec2>& w, double ahead, const StepModel& m, const TrackerParams& prm,
+                       double lim = 1.0) {
+    const int last = (int)w.size() - 1, k = (int)ahead;
+    const double frac = ahead - k;
+    auto at = [&](int j) { return w[std::min(j, last)]; };
+    const Vec2 target = frac > 0 ? at(k) + (at(k + 1) - at(k)) * frac : at(k);
+    const Vec2 v_ref = k + 1 <= last ? m.steady_velocity(w[k + 1] - w[k]) : Vec2{0, 0};
+    return track_waypoint(a.pos, a.vel, target, v_ref, m, prm, lim);
+}
 
 // A control-barrier-function filter, solved for the whole team at once. For every pair of
 // agents closer than `range` (and every obstacle or wall surface within `range` of an agent),
@@ -1434,10 +1447,11 @@ inline void priority_order(const World& world, const std::function<double(const 
 // Safety-filter weight of rank `rank` of n: `first` for rank 0, falling linearly to 1.
 inline double priority_weight_of(int rank, int n, double first) { return n > 1 ? 1 + (first - 1) * (n - 1 - rank) / (n - 1) : 1.0; }
 
+constexpr double kMaxLookahead = 1000;  // FollowerConfig::lookahead: past a window's end the tracker holds its last waypoint
+
 // Executes plans (SPEC 8): replans every `replan_every` steps (and whenever the set of agents
 // changed or the window ran out), tracks the waypoints with the tracker, then applies the
 // safety filter when enabled. Make one per episode.
-constexpr double kMaxLookahead = 1000;  // FollowerConfig::lookahead: past a window's end the tracker holds its last waypoint
 struct FollowerConfig {
     int replan_every = 8;        // m, steps executed per plan, >= 1
     bool safety_filter = true;   // run the SPEC 3.2 filter after the tracker
@@ -1480,21 +1494,12 @@ public:
             plans_++;
         }
         StepModel model(world.config());
-        // The waypoint tracked: the one planned for this step, or `lookahead` steps later
-        // (between two waypoints, on the segment joining them).
+        // The point tracked: the one planned for this step, or `lookahead` steps later.
         const double ahead = world.t() - plan_t0_ + cfg_.lookahead;
-        const int k = (int)ahead;
-        const double frac = ahead - k;
         std::vector<Vec2> u(world.size());
         for (size_t i = 0; i < plan_.ids.size(); ++i) {
-            const Agent& a = world.agents()[world.index_of(plan_.ids[i])];
-            const std::vector<Vec2>& w = plan_.waypoints[i];
-            int last = (int)w.size() - 1;
-            auto at = [&](int j) { return w[std::min(j, last)]; };
-            Vec2 w1 = frac > 0 ? at(k) + (at(k + 1) - at(k)) * frac : at(k);
-            // Planned velocity at w1: toward the next waypoint; zero once the window ends.
-            Vec2 v_ref = k + 1 <= last ? model.steady_velocity(w[k + 1] - w[k]) : Vec2{0, 0};
-            u[world.index_of(plan_.ids[i])] = track_waypoint(a.pos, a.vel, w1, v_ref, model, cfg_.tracker, world.config().max_action);
+            const int j = world.index_of(plan_.ids[i]);
+            u[j] = track_plan(world.agents()[j], plan_.waypoints[i], ahead, model, cfg_.tracker, world.config().max_action);
         }
         if (cfg_.safety_filter) u = safety_filter(world, u, cfg_.filter, filter_weights(world));
         return u;
@@ -1882,11 +1887,7 @@ public:
         std::vector<double> weight(n);
         for (int i = 0; i < n; ++i) {
             int pi = plan_index(ag[i].id);
-            const std::vector<Vec2>& w = plan_.waypoints[pi];
-            int last = (int)w.size() - 1;
-            Vec2 w1 = w[std::min(k, last)];
-            Vec2 v_ref = k + 1 <= last ? model.steady_velocity(w[k + 1] - w1) : Vec2{0, 0};
-            u[i] = track_waypoint(ag[i].pos, ag[i].vel, w1, v_ref, model, prm_.tracker, world.config().max_action);
+            u[i] = track_plan(ag[i], plan_.waypoints[pi], k, model, prm_.tracker, world.config().max_action);
             weight[i] = priority_weight_of(rank_[pi], n, prm_.priority_weight);
         }
         return safety_filter(world, u, prm_.filter, weight);
