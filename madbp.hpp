@@ -78,7 +78,9 @@
 //        The Local scene frame, route subgoals and ModelConfig::n_train_max (new metadata, absent
 //        = the 0.1 behaviour); automatic neighbourhoods, plan_robot; the planner samples with
 //        guidance kDefaultGuidance. ModelConfig::velocity_context and priority_context (options;
-//        off in shipped models; priority_values, Neighbour::id).
+//        off in shipped models; priority_values, Neighbour::id). SamplerConfig::keep_right: the
+//        guidance also turns robots that meet to the right of their relative motion, so they
+//        pass instead of stopping nose to nose; the planner samples with kDefaultKeepRight.
 //   0.1  neural-network core, safetensors checkpoints, MA-DBP model, DDIM sampler, planner.
 
 #ifndef MADBP_HPP
@@ -2702,6 +2704,9 @@ constexpr int kMaxCandidates = 64;
 // The guidance DiffusionPlanner samples with (SamplerConfig::guidance; the bare sampler's default
 // is 0, plain DDIM): tuned on seeds 1000-1099 (docs/experiments.md).
 constexpr float kDefaultGuidance = 0.004f;
+// The keep-right push DiffusionPlanner samples with (SamplerConfig::keep_right; the bare sampler's
+// default is 0): tuned on seeds 1000-1099 (docs/experiments.md, "Keep right").
+constexpr float kDefaultKeepRight = 300.f;
 
 // The map's clearance (static_clearance: distance to the nearest obstacle or wall surface,
 // world units, negative inside) sampled at the nodes of a square grid of spacing `cell` over the
@@ -2853,12 +2858,22 @@ struct WindowCost {
     bool geodesic = true;        // the goal term measures around the obstacles (goal fields)
 };
 
+// Relative speed (world units over two waypoints) below which the keep-right push fades in
+// proportion: robots barely moving relative to each other have no side to pass on.
+constexpr double kKeepRightFade = 0.05;
+
 // The WindowCost of scene s's windows x (2, H*A) (normalised displacements, agent-major, as
 // sample_windows writes them) in `batch`; the map comes from `fields` (set_map; goal fields from
 // add_goals, else the goal term is straight-line). With `grad`
 // (2, H*A), ADDS d cost / d x to the columns of scene s's active agents, t >= 1.
+// With `grad` and keep_right > 0 it also adds the keep-right push (SamplerConfig::keep_right),
+// which is not the gradient of any cost: for two waypoints within 2 radius + agent_margin of
+// each other, h = that reach - their distance, and v = the pair's relative motion there (a's
+// waypoints t+1 minus t-1, minus b's), a is pushed by keep_right * h along v turned right
+// (unit, fading below kKeepRightFade), b by the opposite; in `grad` as minus those pushes. The
+// returned cost does not change.
 inline double window_cost(const SceneBatch& batch, int s, const Mat& x, const ModelConfig& c, const WindowCost& w,
-                          const MapFields& fields, Mat* grad = nullptr) {
+                          const MapFields& fields, Mat* grad = nullptr, float keep_right = 0) {
     const DistanceField& field = fields.clearance;
     const int n = batch.n, H = c.horizon;
     const double ps = c.position_scale, ws = c.window_scale;
@@ -2889,6 +2904,16 @@ inline double window_cost(const SceneBatch& batch, int s, const Mat& x, const Mo
                     const double g = -2.0 * w.agent_weight * h / dist;  // d cost / d P_a = g * (P_a - P_b)
                     add(a, t, g * dx, g * dy);
                     add(b, t, -g * dx, -g * dy);
+                }
+                if (grad && keep_right > 0) {
+                    // A head-on pair's push above is along the line between them, which can only
+                    // stop both; a push to the right of their relative motion makes them pass.
+                    const int t1 = std::min(t + 1, H - 1);
+                    const double vx = P(a, t1, 0) - P(a, t - 1, 0) - (P(b, t1, 0) - P(b, t - 1, 0));
+                    const double vy = P(a, t1, 1) - P(a, t - 1, 1) - (P(b, t1, 1) - P(b, t - 1, 1));
+                    const double k = keep_right * h / std::max(std::sqrt(vx * vx + vy * vy), kKeepRightFade);
+                    add(a, t, -k * vy, k * vx);  // a's push k (vy, -vx): v turned right
+                    add(b, t, k * vy, -k * vx);
                 }
             }
         }
@@ -2978,6 +3003,10 @@ struct SamplerConfig {
                                  // -W * d cost / d waypoint (world units; cost: WindowCost)
     int candidates = 1;          // k in [1, kMaxCandidates]: windows drawn per scene in one batch; the lowest-cost one is kept
     WindowCost cost;             // the cost both use
+    // With guidance > 0: robots whose waypoints come within 2 radius + agent_margin of each other
+    // are also pushed apart sideways, each to the right of their relative motion (window_cost),
+    // so a head-on pair passes instead of stopping nose to nose. Not a cost gradient; 0 = off.
+    float keep_right = 0;
     bool conflict_aware() const { return guidance != 0 || candidates != 1; }
 };
 
@@ -3013,6 +3042,8 @@ void sample_conflict_aware(Denoiser& model, const NoiseSchedule& schedule, const
         throw std::invalid_argument("sampler candidates: " + std::to_string(k) + " must be in [1, kMaxCandidates = " + std::to_string(kMaxCandidates) + "]");
     if (!(sc.guidance >= 0) || !std::isfinite(sc.guidance))
         throw std::invalid_argument("sampler guidance: must be a finite number >= 0 (got " + std::to_string(sc.guidance) + ")");
+    if (!(sc.keep_right >= 0) || !std::isfinite(sc.keep_right))
+        throw std::invalid_argument("sampler keep_right: must be a finite number >= 0 (got " + std::to_string(sc.keep_right) + ")");
     const WindowCost& wc = sc.cost;
     for (float v : {wc.radius, wc.agent_margin, wc.map_margin, wc.agent_weight, wc.map_weight, wc.goal_weight})
         if (!(v >= 0) || !std::isfinite(v)) throw std::invalid_argument("sampler cost: every WindowCost field must be finite and >= 0");
@@ -3048,7 +3079,7 @@ void sample_conflict_aware(Denoiser& model, const NoiseSchedule& schedule, const
         for (long j = 0; j < x.size(); ++j) x0[j] = std::clamp(eps_mode ? (x.data()[j] - s1a * x0[j]) / sa : x0[j], -sc.x0_clip, sc.x0_clip);
         if (sc.guidance > 0) {
             cw.grad.setZero(2, x.cols());
-            for (int b = 0; b < Bk; ++b) window_cost(rb, b, cw.out, c, wc, cw.fields, &cw.grad);
+            for (int b = 0; b < Bk; ++b) window_cost(rb, b, cw.out, c, wc, cw.fields, &cw.grad, sc.keep_right);
             for (long j = 0; j < x.size(); ++j) x0[j] = std::clamp(x0[j] - step_size * cw.grad.data()[j], -sc.x0_clip, sc.x0_clip);
         }
         for (long j = 0; j < x.size(); ++j) {
@@ -3160,6 +3191,7 @@ public:
         sampler.sample_steps = model_.config.sample_steps;
         sampler.goal_reach = default_goal_reach(model_.config);
         sampler.guidance = kDefaultGuidance;
+        sampler.keep_right = kDefaultKeepRight;
     }
     const ModelConfig& config() const { return model_.config; }
     MadbpModel& model() { return model_; }

@@ -383,6 +383,61 @@ TEST_CASE("window cost: the guidance gradient matches central finite differences
     CHECK(window_cost(s, 0, still, c, WindowCost{}, open) < gw * 2 * 0.02);  // around the map: within a cell of 0 at the goal
 }
 
+TEST_CASE("window cost: the keep-right push turns a head-on pair to their right, equal and opposite, cost unchanged") {
+    const ModelConfig c = tiny_config();
+    SceneBatch s;
+    s.resize(1, 2, c, true);
+    encode_map(s, 0, WorldMap{}, c);
+    encode_agent(s, 0, 0, {-0.3, 0}, {0.3, 0}, WorldMap{}, c);  // a heads +x, b heads -x, on one line
+    encode_agent(s, 1, 1, {0.3, 0}, {-0.3, 0}, WorldMap{}, c);
+    s.count[0] = 2;
+    MapFields open;
+    open.set_map(WorldMap{});
+    const int H = c.horizon;
+    auto start = [&](int a, int k) { return (k ? s.origin[0].y : s.origin[0].x) + s.pose(k, a) * c.position_scale; };
+    // Windows that run straight through each other: each waypoint where the other starts at the end.
+    Mat x = Mat::Zero(2, 2L * H);
+    for (int a = 0; a < 2; ++a)
+        for (int t = 0; t < H; ++t) x(0, (long)a * H + t) = (float)((a ? -0.6 : 0.6) * t / (H - 1) / c.window_scale);
+    const WindowCost w;
+    Mat plain = Mat::Zero(2, x.cols()), pushed = Mat::Zero(2, x.cols());
+    const float K = 50;
+    const double cost = window_cost(s, 0, x, c, w, open, &plain);
+    CHECK(window_cost(s, 0, x, c, w, open, &pushed, K) == cost);
+    const double reach = 2.0 * w.radius + w.agent_margin;
+    int inside = 0;
+    for (int t = 1; t < H; ++t) {
+        const double pa = start(0, 0) + c.window_scale * x(0, t), pb = start(1, 0) + c.window_scale * x(0, (long)H + t);
+        const double h = reach - std::fabs(pa - pb);
+        const Eigen::Vector2f da = pushed.col(t) - plain.col(t), db = pushed.col((long)H + t) - plain.col((long)H + t);
+        CHECK(da.x() == 0.0f);  // the pair's relative motion is along x: the push is across it
+        CHECK(db.x() == 0.0f);
+        CHECK(db.y() == doctest::Approx(-da.y()));
+        if (h <= 0) {
+            CHECK(da.y() == 0.0f);
+            continue;
+        }
+        inside++;
+        // a (heading +x) is pushed to -y, its right: in the gradient, +K h window_scale (unit relative motion).
+        const int t1 = std::min(t + 1, H - 1);
+        const double v = c.window_scale * 2 * (x(0, t1) - x(0, t - 1));
+        CHECK(da.y() == doctest::Approx(K * h * c.window_scale * v / std::max(v, kKeepRightFade)).epsilon(1e-4));
+    }
+    CHECK(inside >= 2);
+    // The sampler checks the value.
+    SamplerConfig sc;
+    sc.guidance = 0.01f;
+    sc.keep_right = -1;
+    MadbpModel model(c, 5);
+    NoiseSchedule sched(c.diffusion_steps);
+    ConflictWorkspace cw;
+    cw.set_map(WorldMap{});
+    Rng rng(1);
+    Mat out, eps;
+    std::vector<int> steps;
+    CHECK_THROWS_WITH_AS(sample_windows(model, sched, s, sc, rng, out, eps, steps, &cw), doctest::Contains("keep_right"), std::invalid_argument);
+}
+
 // ---------------------------------------------------------------------------------------------
 // The sampler
 

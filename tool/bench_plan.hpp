@@ -66,6 +66,7 @@ inline int bench_plan(Args& a) {
     uint64_t seed = (uint64_t)a.integer("--seed", 0, 0);
     const double guidance = a.real("--guidance", madbp::kDefaultGuidance, 0, 1e6);
     const int candidates = (int)a.integer("--candidates", 1, 1, madbp::kMaxCandidates);
+    const double keep_right = a.real("--keep-right", madbp::kDefaultKeepRight, 0, 1e6);
     bool json = a.flag("--json");
     a.finish();
     madbp::set_num_threads(1);  // SPEC 9: one core
@@ -75,11 +76,11 @@ inline int bench_plan(Args& a) {
     // The GEMM of the first down block's convolution for 8 agents: (C0, D*k) x (D*k, H*8).
     const double gemm = eigen_gemm_rate(config.channels[0], config.dim * config.kernel, config.horizon * 8);
     if (!json)
-        std::printf("plan bench: %s, S = %d, guidance %g, candidates %d, one thread; Eigen GEMM %dx%d * %dx%d: %.1f GFLOP/s\n"
+        std::printf("plan bench: %s, S = %d, guidance %g, keep-right %g, candidates %d, one thread; Eigen GEMM %dx%d * %dx%d: %.1f GFLOP/s\n"
                     "random empty worlds: half-size 1.2 up to 8 robots, 2.4 up to 32, 3.4 beyond; scenes x robots\n"
                     "per scene as the planner chose (automatic neighbourhoods); expert: the guided expert's ms per plan\n"
                     "%4s %6s %10s %10s %10s %8s\n",
-                    model_path.empty() ? "default config (random weights: time does not depend on them)" : model_path.c_str(), S, guidance, candidates,
+                    model_path.empty() ? "default config (random weights: time does not depend on them)" : model_path.c_str(), S, guidance, keep_right, candidates,
                     config.channels[0], config.dim * config.kernel, config.dim * config.kernel, config.horizon * 8, gemm, "n",
                     "scenes", "ms/plan", "expert_ms", "GFLOP/s", "of GEMM");
     double robot_ms = 0;
@@ -90,6 +91,7 @@ inline int bench_plan(Args& a) {
         planner.sampler.sample_steps = S;
         planner.sampler.guidance = (float)guidance;
         planner.sampler.candidates = candidates;
+        planner.sampler.keep_right = (float)keep_right;
         // Larger teams need a larger world to spawn in (starts and goals 0.25 apart).
         madbp::World world = madbp::make_random_world("empty", (int)n, seed, n > 32 ? 3.4 : n > 8 ? 2.4 : 1.2);
         madbp::Plan plan;
@@ -118,7 +120,7 @@ inline int bench_plan(Args& a) {
         }
         if (json)
             std::printf("%s\n", Json().add("bench", "plan").add("agents", n).add("scenes", scenes).add("per_scene", per_scene).add("sample_steps", S)
-                                    .add("guidance", guidance).add("candidates", candidates).add("ms_per_plan", ms).add("expert_ms_per_plan", expert_ms)
+                                    .add("guidance", guidance).add("keep_right", keep_right).add("candidates", candidates).add("ms_per_plan", ms).add("expert_ms_per_plan", expert_ms)
                                     .add("gflops", rate).add("gemm_gflops", gemm).add("share_of_gemm", rate / gemm).line().c_str());
         else
             std::printf("%4ld %3dx%-2d %10.3f %10.3f %10.1f %7.0f%%\n", n, scenes, per_scene, ms, expert_ms, rate, 100 * rate / gemm);

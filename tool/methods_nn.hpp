@@ -20,6 +20,7 @@ struct PlannerOptions {
     double sensing_radius = 0; // DiffusionPlanner::sensing_radius (0: 2 x the model's position_scale)
     double guidance = madbp::kDefaultGuidance;  // SamplerConfig::guidance (0: off)
     int candidates = 1;        // SamplerConfig::candidates (1: off)
+    double keep_right = -1;    // SamplerConfig::keep_right (< 0: the planner's default)
     madbp::WindowCost cost;    // SamplerConfig::cost
     double priority_weight = madbp::FollowerConfig{}.priority_weight;  // 1: the filter weighs robots equally
     double lookahead = madbp::FollowerConfig{}.lookahead;  // 0: track the waypoint planned for this step
@@ -47,6 +48,7 @@ inline PlannerOptions read_planner_options(Args& a) {
     o.sensing_radius = a.real("--sensing-radius", 0, 0, 1000);
     o.guidance = a.real("--guidance", madbp::kDefaultGuidance, 0, 1e6);
     o.candidates = (int)a.integer("--candidates", 1, 1, madbp::kMaxCandidates);
+    o.keep_right = a.real("--keep-right", -1, 0, 1e6);
     read_cost_weights(a.str("--cost-weights", ""), o.cost);
     o.cost.agent_margin = (float)a.real("--cost-margin", o.cost.agent_margin, 0, 10);
     o.priority_weight = a.real("--priority-weight", o.priority_weight, 1, 1000);
@@ -73,6 +75,7 @@ inline madbp::PolicyFactory planner_factory(std::shared_ptr<const madbp::MadbpMo
         planner->sensing_radius = o.sensing_radius;
         planner->sampler.guidance = (float)o.guidance;
         planner->sampler.candidates = o.candidates;
+        if (o.keep_right >= 0) planner->sampler.keep_right = (float)o.keep_right;
         planner->sampler.cost = o.cost;
         return std::make_unique<madbp::PlanFollower>([planner](const madbp::World& w) { return planner->plan(w); }, fc);
     };
@@ -102,6 +105,8 @@ inline void register_nn_methods(std::vector<Method>& m) {
                  "                    x0_hat's waypoints by -W * d cost / d waypoint; default 0.004, 0 = off), --candidates K\n"
                  "                    (best of K windows per scene), --cost-weights A,M,G (robot-robot, robot-map,\n"
                  "                    goal; default 100,100,200), --cost-margin M (robot-robot, default 0.05),\n"
+                 "                    --keep-right K (robots meeting in the guided windows are also pushed to the\n"
+                 "                    right of their relative motion, so they pass; default 300, 0 = off),\n"
                  "                    --priority-weight W (safety-filter weight of the robot that goes first, as the\n"
                  "                    expert's; default 4; 1 = all equal), --lookahead L (the tracker aims L steps\n"
                  "                    ahead of the plan's waypoint for now; default 1.5, 0 = SPEC 8's)",
