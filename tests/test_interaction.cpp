@@ -539,37 +539,52 @@ TEST_CASE("sampler: best-of-k keeps each scene's lowest-cost candidate") {
     CHECK_THROWS_AS(sample_windows(model, sched, s, bad, rng, x, out, buf, &cw), std::invalid_argument);
 }
 
-TEST_CASE("sampler: guidance moves windows that collide apart") {
-    // An oracle whose clean windows drive two robots head-on through each other.
+// Two robots head-on, robot 0 at (-0.4, 0.01) heading +x, robot 1 at (0.4, -0.01) heading -x,
+// and an oracle whose clean windows drive them through each other (0.1 world units a step
+// each: they meet at t = 4).
+namespace {
+struct HeadOn {
     ModelConfig c = tiny_config();
-    const int H = c.horizon;
-    NoiseSchedule sched(c.diffusion_steps);
     SceneBatch s;
-    s.resize(1, 2, c, true);
-    encode_map(s, 0, WorldMap{}, c);
-    encode_agent(s, 0, 0, {-0.4, 0.01}, {0.8, 0.0}, WorldMap{}, c);
-    encode_agent(s, 1, 1, {0.4, -0.01}, {-0.8, 0.0}, WorldMap{}, c);
-    s.count[0] = 2;
-    OracleDenoiser oracle{c, Mat::Zero(2, (long)H * 2)};
-    for (int t = 0; t < H; ++t) {  // 0.1 world units a step each: they meet at t = 4
-        oracle.x0(0, t) = (float)(0.1 * t / c.window_scale);
-        oracle.x0(0, H + t) = -oracle.x0(0, t);
+    OracleDenoiser oracle{c, Mat::Zero(2, (long)c.horizon * 2)};
+    HeadOn() {
+        const int H = c.horizon;
+        s.resize(1, 2, c, true);
+        encode_map(s, 0, WorldMap{}, c);
+        encode_agent(s, 0, 0, {-0.4, 0.01}, {0.8, 0.0}, WorldMap{}, c);
+        encode_agent(s, 1, 1, {0.4, -0.01}, {-0.8, 0.0}, WorldMap{}, c);
+        s.count[0] = 2;
+        for (int t = 0; t < H; ++t) {
+            oracle.x0(0, t) = (float)(0.1 * t / c.window_scale);
+            oracle.x0(0, H + t) = -oracle.x0(0, t);
+        }
     }
+    // Robot 0's position minus robot 1's at waypoint t of windows x.
+    Vec2 apart(const Mat& x, int t) const {
+        const int H = c.horizon;
+        return {-0.8 + c.window_scale * (x(0, t) - x(0, H + t)), 0.02 + c.window_scale * (x(1, t) - x(1, H + t))};
+    }
+    double closest(const Mat& x) const {
+        double d = 1e9;
+        for (int t = 1; t < c.horizon; ++t) d = std::min(d, norm(apart(x, t)));
+        return d;
+    }
+};
+}  // namespace
+
+TEST_CASE("sampler: guidance moves windows that collide apart") {
+    HeadOn head_on;
+    const ModelConfig& c = head_on.c;
+    const SceneBatch& s = head_on.s;
+    auto& oracle = head_on.oracle;
+    auto closest = [&](const Mat& x) { return head_on.closest(x); };
+    NoiseSchedule sched(c.diffusion_steps);
     ConflictWorkspace cw;
     cw.set_map(WorldMap{});
     SamplerConfig sc;
     sc.sample_steps = 5;
     sc.goal_inpaint = false;
     sc.cost.goal_weight = 0;  // the robot-robot term alone
-    auto closest = [&](const Mat& x) {
-        double d = 1e9;
-        for (int t = 1; t < H; ++t) {
-            const double dx = -0.8 + c.window_scale * (x(0, t) - x(0, H + t));  // robot 0 minus robot 1
-            const double dy = 0.02 + c.window_scale * (x(1, t) - x(1, H + t));
-            d = std::min(d, std::sqrt(dx * dx + dy * dy));
-        }
-        return d;
-    };
     Rng r1(5), r2(5);
     Mat plain, guided, out;
     std::vector<int> buf;
@@ -582,6 +597,40 @@ TEST_CASE("sampler: guidance moves windows that collide apart") {
     CHECK(closest(plain) < 0.1);   // the oracle's windows pass through each other
     CHECK(cost_guided < cost_plain);
     CHECK(closest(guided) > closest(plain) + 0.05);
+}
+
+TEST_CASE("sampler: with keep-right a head-on pair passes each on its own right") {
+    HeadOn head_on;
+    NoiseSchedule sched(head_on.c.diffusion_steps);
+    ConflictWorkspace cw;
+    cw.set_map(WorldMap{});
+    SamplerConfig sc;
+    sc.sample_steps = 5;
+    sc.goal_inpaint = false;
+    sc.cost.goal_weight = 0;
+    sc.guidance = 2e-3f;
+    Mat plain, right, out;
+    std::vector<int> buf;
+    Rng r1(5), r2(5);
+    sample_windows(head_on.oracle, sched, head_on.s, sc, r1, plain, out, buf, &cw);
+    sc.keep_right = 300;
+    sample_windows(head_on.oracle, sched, head_on.s, sc, r2, right, out, buf, &cw);
+    // Where they meet (t = 4): without the push robot 0 passes on the side it started on (0.02
+    // above robot 1: its left); with it, below (its right, and robot 1's right).
+    CHECK(head_on.apart(plain, 4).y > 0);
+    CHECK(head_on.apart(right, 4).y < 0);
+    // The pair moves along x, so the push is along y only, robot 0 down and robot 1 up alike.
+    const int H = head_on.c.horizon;
+    int pushed = 0;
+    for (int t = 1; t < H; ++t) {
+        CHECK(right(0, t) == doctest::Approx(plain(0, t)).epsilon(1e-4).scale(1e-3));
+        CHECK(right(0, H + t) == doctest::Approx(plain(0, H + t)).epsilon(1e-4).scale(1e-3));
+        const float down = right(1, t) - plain(1, t), up = right(1, H + t) - plain(1, H + t);
+        CHECK(down <= 1e-5f);
+        CHECK(up == doctest::Approx(-down).epsilon(1e-3).scale(1e-4));
+        pushed += down < -1e-3f;
+    }
+    CHECK(pushed >= 2);
 }
 
 TEST_CASE("planner: conflict-aware plans allocate nothing in the steady state") {
