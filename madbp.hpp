@@ -3282,7 +3282,7 @@ public:
         pos_[0] = pos, goal_[0] = goal, vel_[0] = vel, ids_[0] = id;
         for (int i = 1; i < n; ++i)
             pos_[i] = others[i - 1].pos, goal_[i] = others[i - 1].goal, vel_[i] = others[i - 1].vel, ids_[i] = others[i - 1].id;
-        for (int i = 0; i < n; ++i) at_goal_[i] = norm(pos_[i] - goal_[i]) < WorldConfig{}.goal_tolerance;
+        for (int i = 0; i < n; ++i) at_goal_[i] = WorldConfig{}.reached(pos_[i], goal_[i]);
         priority_keys(map, n);
         plan_scenes(map, n, 1, std::min(K, n), /*local*/ true);
         decode_window(0, pos, window);

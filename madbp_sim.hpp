@@ -142,7 +142,7 @@ inline std::string number_text(double v) {
 //   6 scene files: Scene, parse_scene, load_scene, scene_text, make_world        [2]
 //   7 controllers: Policy, StepModel                                             [3]
 //   8 CLF-QP: ClfQpParams, clf_qp_solve, clf_qp_action, ClfQp                    [3.1]
-//   9 tracker and safety filter: track_waypoint, track_plan, safety_filter                [3.2]
+//   9 tracker and safety filter: track_waypoint, track_plan, safety_filter       [3.2]
 //  10 plans: Plan, Planner, validate_plan, LinePlanner, PlanFollower             [3.2, 3.5, 8]
 //  11 episodes and evaluation: EpisodeLog, run_episode, evaluate                 [9, 10]
 //  12 guided expert: ClearanceGrid, wavefront, RouteGoal, RouteGuide (route subgoals),
@@ -336,6 +336,8 @@ struct WorldConfig {
     double max_action = 1.0;       // action components are clamped to [-max_action, max_action]
     double goal_tolerance = 0.1;   // an agent is at its goal when |p - g| < goal_tolerance
     int max_steps = 100;           // an episode ends after this many steps, >= 1
+    // A robot at p with goal g is at its goal (World::at_goal; planners and training without a World).
+    bool reached(Vec2 p, Vec2 g) const { return norm(p - g) < goal_tolerance; }
 };
 
 // One robot. `id` is stable across joins and leaves.
@@ -435,7 +437,7 @@ public:
     int t() const { return metrics_.steps; }
     // The episode is over: success, or max_steps taken.
     bool done() const { return metrics_.success || metrics_.steps >= cfg_.max_steps; }
-    bool at_goal(const Agent& a) const { return norm(a.pos - a.goal) < cfg_.goal_tolerance; }
+    bool at_goal(const Agent& a) const { return cfg_.reached(a.pos, a.goal); }
     // Every present agent is at its goal (false for an empty team).
     bool all_at_goal() const {
         if (agents_.empty()) return false;

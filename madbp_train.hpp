@@ -662,7 +662,7 @@ inline void make_train_batch(const DemoSet& demos, const std::vector<WindowRef>&
         tb.scene.count[b] = d.agents;
         RouteGuide guide;  // only without `routes`
         if (mc.priority_context)  // agent i of a demonstration has id i
-            priority_values(d.agents, [&](int i) { return norm(d.position(ref.t, i) - d.goals[i]) < WorldConfig{}.goal_tolerance; },
+            priority_values(d.agents, [&](int i) { return WorldConfig{}.reached(d.position(ref.t, i), d.goals[i]); },
                             [&](int i) { return routes ? routes->first[ref.episode].at(i) : guide.route_steps(d.map, d.position(0, i), d.goals[i]); },
                             [](int i) { return i; }, priority_order_buf, priority);
         for (int i = 0; i < d.agents; ++i) {
