@@ -81,6 +81,8 @@
 //        off in shipped models; priority_values, Neighbour::id). SamplerConfig::keep_right: the
 //        guidance also turns robots that meet to the right of their relative motion, so they
 //        pass instead of stopping nose to nose; the planner samples with kDefaultKeepRight.
+//        SamplerConfig::validate: every sampler option is checked on either sampling path (a
+//        bad x0_clip, goal_reach or keep_right was ignored or undefined on the plain one).
 //   0.1  neural-network core, safetensors checkpoints, MA-DBP model, DDIM sampler, planner.
 
 #ifndef MADBP_HPP
@@ -3008,9 +3010,41 @@ struct SamplerConfig {
     // so a head-on pair passes instead of stopping nose to nose. Not a cost gradient; 0 = off.
     float keep_right = 0;
     bool conflict_aware() const { return guidance != 0 || candidates != 1; }
+    // Throws std::invalid_argument naming the first field out of range; K: the model's diffusion
+    // steps. sample_windows calls it, whichever path the options take.
+    void validate(int K) const {
+        auto bad = [](const std::string& field, const std::string& rule, double v) {
+            throw std::invalid_argument("sampler " + field + ": must be " + rule + " (got " + std::to_string(v) + ")");
+        };
+        if (sample_steps < 1 || sample_steps > K) bad("sample_steps", "in [1, " + std::to_string(K) + "]", sample_steps);
+        if (!(x0_clip > 0) || !std::isfinite(x0_clip)) bad("x0_clip", "a finite number > 0", x0_clip);
+        if (!(goal_reach >= 0) || !std::isfinite(goal_reach)) bad("goal_reach", "a finite number >= 0", goal_reach);
+        if (!(guidance >= 0) || !std::isfinite(guidance)) bad("guidance", "a finite number >= 0", guidance);
+        if (candidates < 1 || candidates > kMaxCandidates) bad("candidates", "in [1, kMaxCandidates = " + std::to_string(kMaxCandidates) + "]", candidates);
+        if (!(keep_right >= 0) || !std::isfinite(keep_right)) bad("keep_right", "a finite number >= 0", keep_right);
+        const std::pair<const char*, float> weights[] = {{"cost.radius", cost.radius},           {"cost.agent_margin", cost.agent_margin},
+                                                         {"cost.map_margin", cost.map_margin},   {"cost.agent_weight", cost.agent_weight},
+                                                         {"cost.map_weight", cost.map_weight},   {"cost.goal_weight", cost.goal_weight}};
+        for (const auto& [field, v] : weights)
+            if (!(v >= 0) || !std::isfinite(v)) bad(field, "a finite number >= 0", v);
+    }
 };
 
 namespace detail {
+// The pinned waypoints re-imposed on windows x (2, H*A): every active agent's t = 0 at its
+// position (zero displacement), its last waypoint at its goal when the goal is pinned
+// (end_pinned, with goal inpainting on); inactive agents' windows zeroed.
+inline void impose_pins(const SceneBatch& batch, const ModelConfig& c, const SamplerConfig& sc, Mat& x) {
+    const int H = c.horizon;
+    for (int a = 0; a < batch.agents(); ++a) {
+        auto w = x.middleCols((long)a * H, H);
+        if (batch.agent_mask[a] == 0) { w.setZero(); continue; }
+        w.col(0).setZero();
+        Eigen::Vector2f end;
+        if (sc.goal_inpaint && end_pinned(batch, a, c, sc.goal_reach, &end)) w.col(H - 1).head<2>() = end;  // a fixed-size target: no vector loads past `end`
+    }
+}
+
 // The starting noise x (2, H*A) ~ N(0, I): from `rng`, or with batch.noise_seed each scene's
 // columns from its own stream (so a scene draws the same noise in any batch).
 inline void draw_noise(const SceneBatch& batch, int H, Rng& rng, Mat& x) {
@@ -3037,33 +3071,15 @@ void sample_conflict_aware(Denoiser& model, const NoiseSchedule& schedule, const
                            Mat& x_best, ConflictWorkspace& cw) {
     const ModelConfig& c = model.config;
     const int H = c.horizon, B = batch.B, n = batch.n, S = sc.sample_steps, k = sc.candidates;
-    if (S < 1 || S > schedule.K) throw std::invalid_argument("sample_steps: " + std::to_string(S) + " must be in [1, " + std::to_string(schedule.K) + "]");
-    if (k < 1 || k > kMaxCandidates)
-        throw std::invalid_argument("sampler candidates: " + std::to_string(k) + " must be in [1, kMaxCandidates = " + std::to_string(kMaxCandidates) + "]");
-    if (!(sc.guidance >= 0) || !std::isfinite(sc.guidance))
-        throw std::invalid_argument("sampler guidance: must be a finite number >= 0 (got " + std::to_string(sc.guidance) + ")");
-    if (!(sc.keep_right >= 0) || !std::isfinite(sc.keep_right))
-        throw std::invalid_argument("sampler keep_right: must be a finite number >= 0 (got " + std::to_string(sc.keep_right) + ")");
     const WindowCost& wc = sc.cost;
-    for (float v : {wc.radius, wc.agent_margin, wc.map_margin, wc.agent_weight, wc.map_weight, wc.goal_weight})
-        if (!(v >= 0) || !std::isfinite(v)) throw std::invalid_argument("sampler cost: every WindowCost field must be finite and >= 0");
     if (wc.geodesic && wc.goal_weight > 0) cw.fields.add_goals(batch, c, wc.radius);  // new goals only
     if (k > 1) repeat_scenes(batch, k, cw.batch);
     const SceneBatch& rb = k > 1 ? cw.batch : batch;
-    const int A = rb.agents(), Bk = rb.B;
+    const int Bk = rb.B;
     model.encode_context(rb);
     Mat& x = cw.x;
     draw_noise(rb, H, rng, x);
-    auto impose = [&]() {
-        for (int a = 0; a < A; ++a) {
-            auto w = x.middleCols((long)a * H, H);
-            if (rb.agent_mask[a] == 0) { w.setZero(); continue; }
-            w.col(0).setZero();
-            Eigen::Vector2f end;
-            if (sc.goal_inpaint && end_pinned(rb, a, c, sc.goal_reach, &end)) w.col(H - 1).template head<2>() = end;  // a fixed-size target: no vector loads past `end`
-        }
-    };
-    impose();
+    impose_pins(rb, c, sc, x);
     cw.steps.resize(Bk);
     // d x0 = -W / window_scale^2 * d cost / d x0 moves a waypoint by -W * d cost / d P (world units).
     const float step_size = (float)(sc.guidance / ((double)c.window_scale * c.window_scale));
@@ -3087,7 +3103,7 @@ void sample_conflict_aware(Denoiser& model, const NoiseSchedule& schedule, const
             const float e = (xj - sa * x0[j]) / s1a;  // the noise consistent with the (guided, clipped) x0
             x.data()[j] = sap * x0[j] + s1ap * e;
         }
-        impose();
+        impose_pins(rb, c, sc, x);
     }
     // Best of k: each scene keeps its first lowest-cost candidate.
     cw.cost.resize(Bk);
@@ -3114,6 +3130,7 @@ void sample_conflict_aware(Denoiser& model, const NoiseSchedule& schedule, const
 template <class Denoiser>
 void sample_windows(Denoiser& model, const NoiseSchedule& schedule, const SceneBatch& batch, const SamplerConfig& sc,
                     Rng& rng, Mat& x, Mat& out, std::vector<int>& step_buf, ConflictWorkspace* cw = nullptr) {
+    sc.validate(schedule.K);
     if (sc.conflict_aware()) {
         if (!cw || cw->fields.clearance.nodes == 0)
             throw std::invalid_argument("sampler: guidance and candidates need a ConflictWorkspace holding the map's distance field (set_map)");
@@ -3121,20 +3138,10 @@ void sample_windows(Denoiser& model, const NoiseSchedule& schedule, const SceneB
         return;
     }
     const ModelConfig& c = model.config;
-    const int A = batch.agents(), H = c.horizon, B = batch.B, S = sc.sample_steps;
-    if (S < 1 || S > schedule.K) throw std::invalid_argument("sample_steps: " + std::to_string(S) + " must be in [1, " + std::to_string(schedule.K) + "]");
+    const int H = c.horizon, B = batch.B, S = sc.sample_steps;
     model.encode_context(batch);
     detail::draw_noise(batch, H, rng, x);
-    auto impose = [&]() {
-        for (int a = 0; a < A; ++a) {
-            auto w = x.middleCols((long)a * H, H);
-            if (batch.agent_mask[a] == 0) { w.setZero(); continue; }
-            w.col(0).setZero();
-            Eigen::Vector2f end;
-            if (sc.goal_inpaint && end_pinned(batch, a, c, sc.goal_reach, &end)) w.col(H - 1).template head<2>() = end;  // a fixed-size target: no vector loads past `end`
-        }
-    };
-    impose();
+    detail::impose_pins(batch, c, sc, x);
     step_buf.resize(B);
     for (int s = S; s >= 1; --s) {
         const int k = schedule.ddim_step(s, S), k_prev = schedule.ddim_step(s - 1, S);
@@ -3150,7 +3157,7 @@ void sample_windows(Denoiser& model, const NoiseSchedule& schedule, const SceneB
             const float e = (xj - sa * x0) / s1a;  // the noise consistent with the clipped x0
             x.data()[j] = sap * x0 + s1ap * e;
         }
-        impose();
+        detail::impose_pins(batch, c, sc, x);
     }
 }
 

@@ -539,6 +539,46 @@ TEST_CASE("sampler: best-of-k keeps each scene's lowest-cost candidate") {
     CHECK_THROWS_AS(sample_windows(model, sched, s, bad, rng, x, out, buf, &cw), std::invalid_argument);
 }
 
+TEST_CASE("sampler: every option is checked on either path, and a bad one is named") {
+    const ModelConfig c = tiny_config();
+    SceneBatch s;
+    s.resize(1, 2, c, true);
+    encode_map(s, 0, WorldMap{}, c);
+    encode_agent(s, 0, 0, {-0.3, 0}, {0.3, 0}, WorldMap{}, c);
+    encode_agent(s, 1, 1, {0.3, 0}, {-0.3, 0}, WorldMap{}, c);
+    s.count[0] = 2;
+    MadbpModel model(c, 5);
+    NoiseSchedule sched(c.diffusion_steps);
+    ConflictWorkspace cw;
+    cw.set_map(WorldMap{});
+    Rng rng(1);
+    Mat x, out;
+    std::vector<int> buf;
+    const float nan = std::numeric_limits<float>::quiet_NaN();
+    struct Bad { const char* field; std::function<void(SamplerConfig&)> set; };
+    const Bad bad[] = {{"sample_steps", [](SamplerConfig& o) { o.sample_steps = 0; }},
+                       {"sample_steps", [&](SamplerConfig& o) { o.sample_steps = c.diffusion_steps + 1; }},
+                       {"x0_clip", [](SamplerConfig& o) { o.x0_clip = -1; }},  // a clamp to [1, -1] would be undefined
+                       {"x0_clip", [&](SamplerConfig& o) { o.x0_clip = nan; }},
+                       {"goal_reach", [&](SamplerConfig& o) { o.goal_reach = nan; }},
+                       {"candidates", [](SamplerConfig& o) { o.candidates = 0; }},
+                       {"guidance", [](SamplerConfig& o) { o.guidance = -1; }},
+                       {"keep_right", [](SamplerConfig& o) { o.keep_right = -1; }},
+                       {"cost.agent_margin", [](SamplerConfig& o) { o.cost.agent_margin = -0.1f; }},
+                       {"cost.goal_weight", [](SamplerConfig& o) { o.cost.goal_weight = INFINITY; }}};
+    for (bool guided : {false, true})
+        for (const Bad& b : bad) {
+            CAPTURE(b.field);
+            CAPTURE(guided);
+            SamplerConfig sc;
+            sc.guidance = guided ? 0.004f : 0.0f;  // the plain path (no workspace needed) and the conflict-aware one
+            CHECK_NOTHROW(sc.validate(c.diffusion_steps));
+            b.set(sc);
+            CHECK_THROWS_WITH_AS(sc.validate(c.diffusion_steps), doctest::Contains(b.field), std::invalid_argument);
+            CHECK_THROWS_WITH_AS(sample_windows(model, sched, s, sc, rng, x, out, buf, &cw), doctest::Contains(b.field), std::invalid_argument);
+        }
+}
+
 // Two robots head-on, robot 0 at (-0.4, 0.01) heading +x, robot 1 at (0.4, -0.01) heading -x,
 // and an oracle whose clean windows drive them through each other (0.1 world units a step
 // each: they meet at t = 4).
