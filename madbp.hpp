@@ -3014,7 +3014,7 @@ struct SamplerConfig {
     // steps. sample_windows calls it, whichever path the options take.
     void validate(int K) const {
         auto bad = [](const std::string& field, const std::string& rule, double v) {
-            throw std::invalid_argument("sampler " + field + ": must be " + rule + " (got " + std::to_string(v) + ")");
+            throw std::invalid_argument("sampler " + field + ": must be " + rule + " (got " + number_text(v) + ")");
         };
         if (sample_steps < 1 || sample_steps > K) bad("sample_steps", "in [1, " + std::to_string(K) + "]", sample_steps);
         if (!(x0_clip > 0) || !std::isfinite(x0_clip)) bad("x0_clip", "a finite number > 0", x0_clip);

@@ -20,7 +20,7 @@ struct PlannerOptions {
     double sensing_radius = 0; // DiffusionPlanner::sensing_radius (0: 2 x the model's position_scale)
     double guidance = madbp::kDefaultGuidance;  // SamplerConfig::guidance (0: off)
     int candidates = 1;        // SamplerConfig::candidates (1: off)
-    double keep_right = -1;    // SamplerConfig::keep_right (< 0: the planner's default)
+    double keep_right = madbp::kDefaultKeepRight;  // SamplerConfig::keep_right (0: off)
     madbp::WindowCost cost;    // SamplerConfig::cost
     double priority_weight = madbp::FollowerConfig{}.priority_weight;  // 1: the filter weighs robots equally
     double lookahead = madbp::FollowerConfig{}.lookahead;  // 0: track the waypoint planned for this step
@@ -48,7 +48,7 @@ inline PlannerOptions read_planner_options(Args& a) {
     o.sensing_radius = a.real("--sensing-radius", 0, 0, 1000);
     o.guidance = a.real("--guidance", madbp::kDefaultGuidance, 0, 1e6);
     o.candidates = (int)a.integer("--candidates", 1, 1, madbp::kMaxCandidates);
-    o.keep_right = a.real("--keep-right", -1, 0, 1e6);
+    o.keep_right = a.real("--keep-right", madbp::kDefaultKeepRight, 0, 1e6);
     read_cost_weights(a.str("--cost-weights", ""), o.cost);
     o.cost.agent_margin = (float)a.real("--cost-margin", o.cost.agent_margin, 0, 10);
     o.priority_weight = a.real("--priority-weight", o.priority_weight, 1, 1000);
@@ -75,7 +75,7 @@ inline madbp::PolicyFactory planner_factory(std::shared_ptr<const madbp::MadbpMo
         planner->sensing_radius = o.sensing_radius;
         planner->sampler.guidance = (float)o.guidance;
         planner->sampler.candidates = o.candidates;
-        if (o.keep_right >= 0) planner->sampler.keep_right = (float)o.keep_right;
+        planner->sampler.keep_right = (float)o.keep_right;
         planner->sampler.cost = o.cost;
         return std::make_unique<madbp::PlanFollower>([planner](const madbp::World& w) { return planner->plan(w); }, fc);
     };

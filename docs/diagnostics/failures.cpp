@@ -21,8 +21,7 @@ int main(int argc, char** argv) {
         World w = scenario == "-" ? make_random_world(map, n, seed) : make_interaction_world(scenario, map, n, seed);
         DiffusionPlanner planner(base.clone(), seed);
         PlanFollower follower([&](const World& ww) { return planner.plan(ww); });
-        while (!w.done()) w.step(follower.act(w));
-        if (w.metrics().success) continue;
+        if (run_episode(w, follower).success) continue;
         failures++;
         std::printf("seed %llu:", (unsigned long long)seed);
         for (const Box& b : w.map().boxes) std::printf(" wall (%.2f, %.2f)-(%.2f, %.2f)", b.lo.x, b.lo.y, b.hi.x, b.hi.y);
