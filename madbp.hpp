@@ -70,7 +70,7 @@
 //     TrajectoryProcessor                                                              [5]
 //   5 the model: MadbpModel, save_model, load_model                                      [5, 11]
 //   6 diffusion: NoiseSchedule, SamplerConfig, sample_windows (DDIM with inpainting)      [6]
-//   7 planner: DiffusionPlanner (plan, neighbourhoods, plan_robot)                       [8]
+//   7 planner: DiffusionPlanner (plan, neighbourhoods, take_turns, plan_robot)           [8]
 //
 // Changelog
 //   0.2  one FilmUNet / ContextEncoder / TrajectoryProcessor; one world-to-model encoder;
@@ -83,6 +83,9 @@
 //        pass instead of stopping nose to nose; the planner samples with kDefaultKeepRight.
 //        SamplerConfig::validate: every sampler option is checked on either sampling path (a
 //        bad x0_clip, goal_reach or keep_right was ignored or undefined on the plain one).
+//        DiffusionPlanner::take_turns (default on): robots meeting head-on in a one-lane corridor
+//        they cannot avoid take turns (PassageControl); a robot that waits is given its waiting
+//        point as its goal. last_waiting, last_wait_points.
 //   0.1  neural-network core, safetensors checkpoints, MA-DBP model, DDIM sampler, planner.
 
 #ifndef MADBP_HPP
@@ -3191,6 +3194,11 @@ public:
     int neighbours = -1;
     double sensing_radius = 0;  // world units; 0 = 2 position_scale (the training world's width; measured
                                 // far better than 1.2 in crowds, docs/experiments.md)
+    // One-lane passages (PassageControl, madbp_sim.hpp): robots that would meet head-on in a
+    // corridor or doorway too narrow to pass side by side take turns. A robot that waits is given
+    // its waiting point as its goal. false: every robot heads for its goal or route subgoal.
+    bool take_turns = true;
+    PassageControl passages;
 
     explicit DiffusionPlanner(MadbpModel model, uint64_t seed = 0)
         : model_(std::move(model)), schedule_(model_.config.diffusion_steps), rng_(seed) {
@@ -3204,6 +3212,9 @@ public:
     MadbpModel& model() { return model_; }
     const SceneBatch& last_scene_batch() const { return batch_; }  // what the model saw in the last plan
     const ConflictWorkspace& last_candidates() const { return conflict_; }  // costs and choices of the last conflict-aware plan
+    // Per robot of the last plan: 1 = waits to take its turn through a one-lane passage (take_turns), and where.
+    const std::vector<char>& last_waiting() const { return waiting_; }
+    const std::vector<Vec2>& last_wait_points() const { return wait_point_; }
     size_t remembered_robots() const { return first_route_.size(); }  // priority keys held (ModelConfig::priority_context)
     void reseed(uint64_t seed) { rng_.reseed(seed); }
 
@@ -3311,6 +3322,8 @@ private:
     std::vector<int> order_;
     std::vector<float> priority_;
     std::vector<RouteGoal> route_;   // what each is told to head for (route_goal)
+    std::vector<char> waiting_;      // take_turns: robots told to wait, and where
+    std::vector<Vec2> wait_point_;
     RouteGuide guide_;               // route subgoals (ModelConfig::subgoal_distance)
     ConflictWorkspace conflict_;     // guidance and best-of-k (SamplerConfig::guidance, candidates)
 
@@ -3347,6 +3360,10 @@ private:
         if (shared) update_grid(map);
         route_.resize(n);
         for (int i = 0; i < n; ++i) route_[i] = route_goal(guide_, c, map, pos_[i], goal_[i]);
+        waiting_.assign(n, 0);
+        if (take_turns && passages.arbitrate(guide_, map, n, pos_.data(), goal_.data(), at_goal_.data(), waiting_, wait_point_) > 0)
+            for (int i = 0; i < n; ++i)
+                if (waiting_[i]) route_[i] = {wait_point_[i], true};
         const double radius = sensing_radius > 0 ? sensing_radius : 2.0 * c.position_scale;
         // Each neighbourhood scene draws its own noise, seeded by the plan and its robot's id.
         const uint64_t plan_seed = local ? rng_.next_u64() : 0;

@@ -24,6 +24,8 @@
 //        priority_order over any n robots; RouteGuide::route_steps (the expert's priority key).
 //        PlanFollower's tracker aims FollowerConfig::lookahead = 1.5 steps ahead of the plan
 //        (0 = the 0.1 follower), which makes up the lag a robot builds behind a moving plan.
+//        PassageControl: robots take turns through one-lane corridors they cannot avoid (who
+//        waits, and where); RouteGuide::route_cells, RouteGuide::grid(map).
 //   0.1  world, maps, controllers.
 
 #ifndef MADBP_SIM_HPP
@@ -146,7 +148,7 @@ inline std::string number_text(double v) {
 //  10 plans: Plan, Planner, validate_plan, LinePlanner, PlanFollower             [3.2, 3.5, 8]
 //  11 episodes and evaluation: EpisodeLog, run_episode, evaluate                 [9, 10]
 //  12 guided expert: ClearanceGrid, wavefront, RouteGoal, RouteGuide (route subgoals),
-//     ExpertParams, GuidedExpert                                                 [3.6]
+//     PassageParams, PassageControl (one-lane passages), ExpertParams, GuidedExpert  [3.6]
 //  13 SVG: render_svg, write_text_file                                           [2]
 
 #include <algorithm>
@@ -1755,32 +1757,11 @@ public:
         set_map(map);
         if (norm(goal - p) <= distance && visible(p, goal)) return {goal, true};
         const std::vector<int>& steps = field(grid_.index(goal));
-        const int n = grid_.n;
-        int k = grid_.index(p);
-        if (steps[k] < 0) {  // p's cell is too close to the map: start from the best reachable neighbour
-            int best = -1;
-            for (int dr = -2; dr <= 2; ++dr)
-                for (int dc = -2; dc <= 2; ++dc) {
-                    const int r2 = k / n + dr, c2 = k % n + dc;
-                    if (r2 < 0 || r2 >= n || c2 < 0 || c2 >= n) continue;
-                    const int k2 = r2 * n + c2;
-                    if (steps[k2] >= 0 && (best < 0 || steps[k2] < steps[best])) best = k2;
-                }
-            if (best < 0) return {goal, true};  // no route known from here: head straight for the goal
-            k = best;
-        }
+        int k = start_cell(steps, grid_.index(p));
+        if (k < 0) return {goal, true};  // no route known from here: head straight for the goal
         Vec2 sub = grid_.centre(k);
         while (steps[k] > 0) {
-            // Downhill: among the neighbours one step closer, the one nearest the goal (straighter paths).
-            int next = -1;
-            for (int dr = -1; dr <= 1; ++dr)
-                for (int dc = -1; dc <= 1; ++dc) {
-                    const int r2 = k / n + dr, c2 = k % n + dc;
-                    if ((dr == 0 && dc == 0) || r2 < 0 || r2 >= n || c2 < 0 || c2 >= n) continue;
-                    const int k2 = r2 * n + c2;
-                    if (steps[k2] != steps[k] - 1) continue;
-                    if (next < 0 || norm(grid_.centre(k2) - goal) < norm(grid_.centre(next) - goal)) next = k2;
-                }
+            const int next = downhill(steps, k, goal);
             if (next < 0) break;
             k = next;
             const Vec2 c = steps[k] == 0 ? goal : grid_.centre(k);
@@ -1790,12 +1771,26 @@ public:
         }
         return {sub, false};
     }
+    // The route's cells (grid() indices) from p toward goal: p's cell (or its best reachable
+    // neighbour when p is too close to the map), then downhill to the goal's cell, at most
+    // `max_cells` of them; empty when no route is known.
+    void route_cells(const WorldMap& map, Vec2 p, Vec2 goal, int max_cells, std::vector<int>& cells) {
+        set_map(map);
+        cells.clear();
+        const std::vector<int>& steps = field(grid_.index(goal));
+        int k = start_cell(steps, grid_.index(p));
+        while (k >= 0 && (int)cells.size() < max_cells) {
+            cells.push_back(k);
+            k = steps[k] > 0 ? downhill(steps, k, goal) : -1;
+        }
+    }
     // The segment a-b keeps view_clear from `map` (checked every half cell).
     bool in_view(const WorldMap& map, Vec2 a, Vec2 b) {
         set_map(map);
         return visible(a, b);
     }
     const ClearanceGrid& grid() const { return grid_; }
+    const ClearanceGrid& grid(const WorldMap& map) { set_map(map); return grid_; }  // the grid made for `map`
     // Wavefront steps from p's cell to goal's, the guided expert's priority key (its plan cells
     // and clearance); kRouteUnreachable when no route is known.
     static constexpr int kRouteUnreachable = 1 << 20;
@@ -1828,6 +1823,307 @@ private:
         for (int i = 0; i <= samples; ++i)
             if (static_clearance(map_, a + (b - a) * ((double)i / samples)) < view_clear) return false;
         return true;
+    }
+    // Where a walk on `steps` starts from cell k: k, or when k is too close to the map the
+    // reachable cell within 2 cells nearest the goal; -1 when there is none.
+    int start_cell(const std::vector<int>& steps, int k) const {
+        if (steps[k] >= 0) return k;
+        const int n = grid_.n;
+        int best = -1;
+        for (int dr = -2; dr <= 2; ++dr)
+            for (int dc = -2; dc <= 2; ++dc) {
+                const int r2 = k / n + dr, c2 = k % n + dc;
+                if (r2 < 0 || r2 >= n || c2 < 0 || c2 >= n) continue;
+                const int k2 = r2 * n + c2;
+                if (steps[k2] >= 0 && (best < 0 || steps[k2] < steps[best])) best = k2;
+            }
+        return best;
+    }
+    // Downhill from cell k: among the neighbours one step closer, the one nearest the goal
+    // (straighter paths); -1 when there is none.
+    int downhill(const std::vector<int>& steps, int k, Vec2 goal) const {
+        const int n = grid_.n;
+        int next = -1;
+        for (int dr = -1; dr <= 1; ++dr)
+            for (int dc = -1; dc <= 1; ++dc) {
+                const int r2 = k / n + dr, c2 = k % n + dc;
+                if ((dr == 0 && dc == 0) || r2 < 0 || r2 >= n || c2 < 0 || c2 >= n) continue;
+                const int k2 = r2 * n + c2;
+                if (steps[k2] != steps[k] - 1) continue;
+                if (next < 0 || norm(grid_.centre(k2) - goal) < norm(grid_.centre(next) - goal)) next = k2;
+            }
+        return next;
+    }
+};
+
+// One-lane passages (issue 12): corridors and doorways too narrow for two robots to pass side by
+// side. Two robots that meet head-on in one cannot settle it within a planning window: the filter
+// holds them nose to nose, or the last one through waits in the way and runs out of time. Fleets
+// settle it as traffic control does, one direction at a time, and so does PassageControl: it
+// finds the passages on a RouteGuide's grid and tells each robot of a team whether to go on or
+// to wait beside the passage's mouth while a robot that entered from another mouth holds it.
+//   - One-lane cell: a centre fits there (clearance >= free_clear) and some line through it, in
+//     one of 8 directions, crosses the free space in less than one_lane_width - 2 free_clear
+//     (no room for a second centre 2 radius + a margin away). A passage: an 8-connected set of
+//     them with two mouths (the connected sets of free cells beside it) at least min_length
+//     apart and no way around within `bypass`: a corridor robots cannot avoid, not a doorway, a
+//     corner, a dead end or a junction.
+//   - A robot's claim: the first passage on its route (RouteGuide::route_cells) within
+//     `lookahead`, how far along the route it starts (0: the robot is in it) and the mouth it
+//     enters by (in it: the mouth nearest it other than the one its route leaves by).
+//   - Of the claims on a passage, the nearest (then the lower index) holds it; the claims that
+//     enter by another mouth wait in a queue at theirs: places wait_back out from the mouth's
+//     centre, then every queue_spacing, each wait_side to the right of the way in (to the left,
+//     or on that line, where there is no room), each taken by the robot nearest it of those left.
+//     A robot in the passage that must wait backs out.
+// Claims are made afresh at every call from positions and goals alone, so robots that plan for
+// themselves with the same information reach the same decision.
+struct PassageParams {
+    double one_lane_width = 0.54;  // passages narrower than this, wall to wall, are one-lane (world units)
+    double free_clear = 0.12;      // a robot's centre fits where the clearance is >= this (radius + 0.02)
+    double lookahead = 1.2;        // a robot claims the first passage within this distance along its route
+    double wait_back = 0.3;        // the nearest waiting robot waits this far out from its mouth,
+    double queue_spacing = 0.3;    // each next one this much farther,
+    double wait_side = 0.25;       // and this far to the right of the way in
+    double min_length = 0.5;       // only passages whose mouths are this far apart (corridors, not doorways),
+    double bypass = 1.0;           // and with no way around that is at most this much longer
+};
+class PassageControl {
+public:
+    PassageParams params;
+    struct Mouth {
+        int passage = -1;
+        Vec2 at;    // the centre of the mouth's cells
+        Vec2 in;    // unit: from there into the passage
+    };
+
+    // For cell k of the guide's grid for `map`: passage(...)[k], the passage it belongs to, or -1;
+    // mouth_of_cell()[k], the mouth it belongs to, or -1; mouths() lists them.
+    const std::vector<int>& passage(RouteGuide& guide, const WorldMap& map) {
+        const ClearanceGrid& grid = guide.grid(map);
+        if (!(map_ == map) || (int)passage_.size() != grid.n * grid.n) find_passages(grid, map);
+        return passage_;
+    }
+    const std::vector<int>& mouth_of_cell() const { return mouth_; }
+    const std::vector<Mouth>& mouths() const { return mouths_; }
+
+    // For robots i < n at pos[i] heading for goal[i] (at_goal[i]: arrived, claims nothing):
+    // wait[i] = 1 and point[i] = where to wait, or wait[i] = 0 (go on; point[i] = goal[i]).
+    // Returns how many wait.
+    int arbitrate(RouteGuide& guide, const WorldMap& map, int n, const Vec2* pos, const Vec2* goal, const char* at_goal,
+                  std::vector<char>& wait, std::vector<Vec2>& point) {
+        const PassageParams& p = params;
+        const double lengths[] = {p.one_lane_width, p.free_clear, p.lookahead, p.wait_back, p.queue_spacing, p.wait_side, p.min_length, p.bypass};
+        for (double v : lengths)
+            if (!(v >= 0) || !std::isfinite(v)) throw std::invalid_argument("PassageParams: every length must be a finite number >= 0 (got " + number_text(v) + ")");
+        const std::vector<int>& cell_passage = passage(guide, map);
+        const ClearanceGrid& grid = guide.grid();
+        wait.assign(n, 0);
+        point.assign(goal, goal + n);
+        claims_.clear();
+        if (mouths_.empty()) return 0;
+        const int max_cells = 2 + (int)std::ceil(p.lookahead / grid.cell);
+        for (int i = 0; i < n; ++i) {
+            if (at_goal[i]) continue;
+            guide.route_cells(map, pos[i], goal[i], max_cells, route_);
+            Claim c;
+            c.robot = i;
+            for (int j = 0; j < (int)route_.size() && c.passage < 0; ++j)
+                if (cell_passage[route_[j]] >= 0) c.passage = cell_passage[route_[j]], c.entry = j;
+            if (c.passage < 0) continue;
+            c.exit = c.entry;
+            while (c.exit + 1 < (int)route_.size() && cell_passage[route_[c.exit + 1]] == c.passage) ++c.exit;
+            c.mouth = c.entry > 0 ? mouth_[route_[c.entry - 1]] : -1;
+            if (c.mouth < 0 || mouths_[c.mouth].passage != c.passage) {
+                // In the passage (or entered beside a mouth): the nearest mouth but the one the route leaves by.
+                const int leaves = c.exit + 1 < (int)route_.size() ? mouth_[route_[c.exit + 1]] : -1;
+                c.mouth = -1;
+                for (int m = 0; m < (int)mouths_.size(); ++m)
+                    if (mouths_[m].passage == c.passage && m != leaves &&
+                        (c.mouth < 0 || norm(mouths_[m].at - pos[i]) < norm(mouths_[c.mouth].at - pos[i])))
+                        c.mouth = m;
+                if (c.mouth < 0) continue;
+            }
+            claims_.push_back(c);
+        }
+        int waiting = 0;
+        for (size_t a = 0; a < claims_.size(); ++a) {
+            bool seen = false;  // the first claim on each passage decides for all of its claims
+            for (size_t b = 0; b < a; ++b) seen = seen || claims_[b].passage == claims_[a].passage;
+            if (seen) continue;
+            const Claim* lead = &claims_[a];
+            for (size_t b = a + 1; b < claims_.size(); ++b)
+                if (claims_[b].passage == lead->passage && claims_[b].entry < lead->entry) lead = &claims_[b];
+            // A claim by another mouth waits when it would enter before a claim by the holder's
+            // mouth is out, with room for the two to clear each other (2 robot radii + 0.05).
+            const int clear_cells = (int)std::ceil(0.25 / grid.cell);
+            losers_.clear();
+            for (size_t b = a; b < claims_.size(); ++b) {
+                if (claims_[b].passage != lead->passage || claims_[b].mouth == lead->mouth) continue;
+                bool meets = false;
+                for (size_t h = a; h < claims_.size(); ++h)
+                    meets = meets || (claims_[h].passage == lead->passage && claims_[h].mouth == lead->mouth &&
+                                      claims_[b].entry <= claims_[h].exit + clear_cells);
+                if (meets) losers_.push_back((int)b);
+            }
+            // The queue at each waiting mouth: its places from the mouth out, each to the robot
+            // nearest it of those left (robots keep their places as they walk to them).
+            for (int m = 0; m < (int)mouths_.size(); ++m)
+                for (int place = 0;; ++place) {
+                    const Vec2 spot = waiting_point(grid, mouths_[m], p.wait_back + place * p.queue_spacing);
+                    int best = -1;
+                    for (int b : losers_) {
+                        const int r = claims_[b].robot;
+                        if (claims_[b].mouth == m && !wait[r] && (best < 0 || norm(pos[r] - spot) < norm(pos[claims_[best].robot] - spot))) best = b;
+                    }
+                    if (best < 0) break;
+                    wait[claims_[best].robot] = 1;
+                    point[claims_[best].robot] = spot;
+                    ++waiting;
+                }
+        }
+        return waiting;
+    }
+
+private:
+    struct Claim {
+        int robot = -1, passage = -1, mouth = -1;
+        int entry = 0, exit = 0;  // route cells before the passage (0: in it) and before its last cell there
+    };
+    WorldMap map_;
+    std::vector<int> passage_, mouth_, route_, losers_, queue_, cells_;
+    std::vector<Mouth> mouths_;
+    std::vector<Claim> claims_;
+
+    // Where the robot waits that is `distance` out from mouth m: right of the way in, left, or on it,
+    // the first point that fits (clearance >= free_clear + 0.04) outside any passage.
+    Vec2 waiting_point(const ClearanceGrid& grid, const Mouth& m, double distance) const {
+        const double lim = grid.half - params.free_clear;
+        auto fits = [&](Vec2 q) {
+            return std::abs(q.x) <= lim && std::abs(q.y) <= lim && grid.clear[grid.index(q)] >= params.free_clear + 0.04 &&
+                   passage_[grid.index(q)] < 0;
+        };
+        const Vec2 base = m.at - m.in * distance, right{m.in.y, -m.in.x};
+        for (const Vec2 q : {base + right * params.wait_side, base - right * params.wait_side, base})
+            if (fits(q)) return q;
+        return clamp_box(base, lim);
+    }
+
+    // 8-connected flood from `seed` over the cells k with open(k) (not yet labelled): labels them
+    // `id` and appends them to out.
+    template <class Open>
+    void flood(int n, int seed, Open open, std::vector<int>& label, int id, std::vector<int>& out) {
+        queue_.assign(1, seed);
+        label[seed] = id;
+        for (size_t head = 0; head < queue_.size(); ++head) {
+            const int k = queue_[head];
+            out.push_back(k);
+            for (int dr = -1; dr <= 1; ++dr)
+                for (int dc = -1; dc <= 1; ++dc) {
+                    const int r2 = k / n + dr, c2 = k % n + dc;
+                    if (r2 < 0 || r2 >= n || c2 < 0 || c2 >= n) continue;
+                    const int k2 = r2 * n + c2;
+                    if (open(k2)) label[k2] = id, queue_.push_back(k2);
+                }
+        }
+    }
+    // Whether a walk of at most `steps` cells through free cells outside component `id` leads from
+    // mouth `from` to another mouth of the same passage (mouths from `from` on are that passage's).
+    bool way_around(const ClearanceGrid& grid, const std::vector<int>& component, int id, int from, int steps) {
+        const int n = grid.n;
+        std::vector<int> depth((size_t)n * n, -1);
+        queue_.clear();
+        for (int k = 0; k < n * n; ++k)
+            if (mouth_[k] == from) depth[k] = 0, queue_.push_back(k);
+        for (size_t head = 0; head < queue_.size(); ++head) {
+            const int k = queue_[head];
+            if (mouth_[k] > from) return true;
+            if (depth[k] >= steps) continue;
+            for (int dr = -1; dr <= 1; ++dr)
+                for (int dc = -1; dc <= 1; ++dc) {
+                    const int r2 = k / n + dr, c2 = k % n + dc;
+                    if (r2 < 0 || r2 >= n || c2 < 0 || c2 >= n) continue;
+                    const int k2 = r2 * n + c2;
+                    if (depth[k2] >= 0 || component[k2] == id || grid.clear[k2] < params.free_clear) continue;
+                    depth[k2] = depth[k] + 1;
+                    queue_.push_back(k2);
+                }
+        }
+        return false;
+    }
+    void find_passages(const ClearanceGrid& grid, const WorldMap& map) {
+        const int n = grid.n;
+        const double chord_max = params.one_lane_width - 2 * params.free_clear, step = 0.5 * grid.cell;
+        auto fits = [&](Vec2 q) {
+            if (std::abs(q.x) >= grid.half || std::abs(q.y) >= grid.half) return false;
+            return grid.clear[grid.index(q)] >= params.free_clear;
+        };
+        std::vector<char> one_lane((size_t)n * n, 0);
+        for (int k = 0; k < n * n; ++k) {
+            if (grid.clear[k] < params.free_clear) continue;
+            const Vec2 c = grid.centre(k);
+            for (int d = 0; d < 8 && !one_lane[k]; ++d) {
+                const double angle = d * 0.39269908169872414;  // pi / 8
+                const Vec2 u{std::cos(angle), std::sin(angle)};
+                double chord = 0;
+                for (int side = -1; side <= 1 && chord < chord_max; side += 2)
+                    for (double s = step; chord < chord_max && fits(c + u * (side * s)); s += step) chord += step;
+                one_lane[k] = chord < chord_max;
+            }
+        }
+        auto free_beside = [&](int k) { return grid.clear[k] >= params.free_clear && !one_lane[k]; };
+        passage_.assign((size_t)n * n, -1);
+        mouth_.assign((size_t)n * n, -1);
+        mouths_.clear();
+        std::vector<int> component((size_t)n * n, -1), cells, group;
+        int passages = 0, components = 0;
+        for (int k = 0; k < n * n; ++k) {
+            if (!one_lane[k] || component[k] != -1) continue;
+            cells.clear();
+            const int id = components++;
+            flood(n, k, [&](int k2) { return one_lane[k2] && component[k2] == -1; }, component, id, cells);
+            // Its mouths: free cells beside it, not yet another passage's, grouped by connection.
+            std::vector<int> beside;
+            for (int c : cells)
+                for (int dr = -1; dr <= 1; ++dr)
+                    for (int dc = -1; dc <= 1; ++dc) {
+                        const int r2 = c / n + dr, c2 = c % n + dc;
+                        if (r2 < 0 || r2 >= n || c2 < 0 || c2 >= n) continue;
+                        const int k2 = r2 * n + c2;
+                        if (free_beside(k2) && mouth_[k2] == -1) mouth_[k2] = -3, beside.push_back(k2);  // -3: beside, ungrouped
+                    }
+            const size_t first_mouth = mouths_.size();
+            for (int b : beside) {
+                if (mouth_[b] != -3) continue;
+                group.clear();
+                flood(n, b, [&](int k2) { return mouth_[k2] == -3; }, mouth_, (int)mouths_.size(), group);
+                Mouth m;
+                m.passage = passages;
+                Vec2 inner;
+                int inner_count = 0;
+                for (int g : group) {
+                    m.at += grid.centre(g);
+                    for (int c : cells)
+                        if (std::abs(c / n - g / n) <= 1 && std::abs(c % n - g % n) <= 1) inner += grid.centre(c), ++inner_count;
+                }
+                m.at = m.at / (double)group.size();
+                m.in = normalized(inner / (double)std::max(1, inner_count) - m.at);
+                mouths_.push_back(m);
+            }
+            // A corner or a dead end (one mouth) is no passage; nor is a junction (three or more),
+            // a doorway (mouths less than min_length apart) or one with a way around at most `bypass` longer.
+            double length = 0;
+            for (size_t m = first_mouth + 1; m < mouths_.size(); ++m) length = std::max(length, norm(mouths_[m].at - mouths_[first_mouth].at));
+            if (mouths_.size() - first_mouth != 2 || length < params.min_length ||
+                way_around(grid, component, id, (int)first_mouth, (int)std::ceil((length + params.bypass) / grid.cell))) {
+                for (int b : beside) mouth_[b] = -1;
+                mouths_.resize(first_mouth);
+                continue;
+            }
+            for (int c : cells) passage_[c] = passages;
+            ++passages;
+        }
+        map_ = map;
     }
 };
 

@@ -24,6 +24,8 @@ struct PlannerOptions {
     madbp::WindowCost cost;    // SamplerConfig::cost
     double priority_weight = madbp::FollowerConfig{}.priority_weight;  // 1: the filter weighs robots equally
     double lookahead = madbp::FollowerConfig{}.lookahead;  // 0: track the waypoint planned for this step
+    bool take_turns = true;    // DiffusionPlanner::take_turns (one-lane passages)
+    double one_lane_width = madbp::PassageParams{}.one_lane_width;
 };
 // "A,M,G": the agent, map and goal weights of the window cost.
 inline void read_cost_weights(const std::string& s, madbp::WindowCost& w) {
@@ -53,6 +55,8 @@ inline PlannerOptions read_planner_options(Args& a) {
     o.cost.agent_margin = (float)a.real("--cost-margin", o.cost.agent_margin, 0, 10);
     o.priority_weight = a.real("--priority-weight", o.priority_weight, 1, 1000);
     o.lookahead = a.real("--lookahead", o.lookahead, 0, madbp::kMaxLookahead);
+    o.take_turns = a.integer("--take-turns", 1, 0, 1) != 0;
+    o.one_lane_width = a.real("--one-lane-width", o.one_lane_width, 0, 100);
     return o;
 }
 
@@ -77,6 +81,8 @@ inline madbp::PolicyFactory planner_factory(std::shared_ptr<const madbp::MadbpMo
         planner->sampler.candidates = o.candidates;
         planner->sampler.keep_right = (float)o.keep_right;
         planner->sampler.cost = o.cost;
+        planner->take_turns = o.take_turns;
+        planner->passages.params.one_lane_width = o.one_lane_width;
         return std::make_unique<madbp::PlanFollower>([planner](const madbp::World& w) { return planner->plan(w); }, fc);
     };
 }
@@ -109,7 +115,10 @@ inline void register_nn_methods(std::vector<Method>& m) {
                  "                    right of their relative motion, so they pass; default 300, 0 = off),\n"
                  "                    --priority-weight W (safety-filter weight of the robot that goes first, as the\n"
                  "                    expert's; default 4; 1 = all equal), --lookahead L (the tracker aims L steps\n"
-                 "                    ahead of the plan's waypoint for now; default 1.5, 0 = SPEC 8's)",
+                 "                    ahead of the plan's waypoint for now; default 1.5, 0 = SPEC 8's),\n"
+                 "                    --take-turns 0|1 (robots meeting head-on in a one-lane corridor or doorway\n"
+                 "                    take turns, one waiting beside its mouth; default 1), --one-lane-width W\n"
+                 "                    (passages narrower than W wall to wall are one-lane; default 0.54)",
                  [](Args& a, const MethodSetup& s) { return madbp_method(read_planner_options(a), s); }});
 }
 

@@ -2,7 +2,8 @@
 // robot's position and where its new plan puts it 8 steps later (docs/experiments.md, "Keep
 // right"). Shows whether a stalled pair's plans stand still or run through each other.
 //   g++ -std=c++17 -O2 -I. -isystem /usr/include/eigen3 docs/diagnostics/standoff_trace.cpp -o build/standoff_trace
-//   build/standoff_trace MAP SCENARIO N SEED [KEEP_RIGHT]   (e.g. build/standoff_trace empty corridor 4 1001 0)
+//   build/standoff_trace MAP SCENARIO N SEED [KEEP_RIGHT [TAKE_TURNS]]   (e.g. build/standoff_trace empty corridor 4 1001 0)
+// A robot told to wait for a one-lane passage (DiffusionPlanner::take_turns) is marked "waits at (x, y)".
 #include <cstdio>
 #include <cstdlib>
 
@@ -18,8 +19,13 @@ int main(int argc, char** argv) {
     World w = make_interaction_world(scenario, map, n, seed);
     DiffusionPlanner planner(load_model("models/madbp-default.safetensors"), seed);  // as eval: the episode's seed
     if (argc > 5) planner.sampler.keep_right = (float)std::atof(argv[5]);
+    if (argc > 6) planner.take_turns = std::atoi(argv[6]) != 0;
     PlanFollower follower([&](const World& ww) { return planner.plan(ww); });
     for (const Box& b : w.map().boxes) std::printf("wall (%.2f, %.2f) - (%.2f, %.2f)\n", b.lo.x, b.lo.y, b.hi.x, b.hi.y);
+    int passage_cells = 0;
+    RouteGuide guide;
+    for (int p : planner.passages.passage(guide, w.map())) passage_cells += p >= 0;
+    std::printf("one-lane cells: %d\n", passage_cells);
     for (const Agent& a : w.agents()) std::printf("robot %d: (%.2f, %.2f) -> (%.2f, %.2f)\n", a.id, a.pos.x, a.pos.y, a.goal.x, a.goal.y);
     int last_plans = 0;
     while (!w.done()) {
@@ -32,6 +38,7 @@ int main(int argc, char** argv) {
                 const Agent& a = w.agents()[w.index_of(p.ids[i])];
                 const Vec2 e = p.waypoints[i][std::min<size_t>(7, p.waypoints[i].size() - 1)];
                 std::printf("  %d: (%5.2f, %5.2f) -> (%5.2f, %5.2f)%s", a.id, a.pos.x, a.pos.y, e.x, e.y, w.at_goal(a) ? " at goal" : "");
+                if (planner.last_waiting()[i]) std::printf(" waits at (%.2f, %.2f)", planner.last_wait_points()[i].x, planner.last_wait_points()[i].y);
             }
             std::printf("\n");
         }

@@ -1,0 +1,154 @@
+// One-lane passages (issue 12): PassageControl (madbp_sim.hpp Section 12) finds the corridors
+// robots must take turns in and says who waits where; DiffusionPlanner::take_turns hands a waiting
+// robot its waiting point as its goal.
+#include <doctest/doctest.h>
+
+#include "madbp.hpp"
+#include "tiny_model.hpp"
+
+using namespace madbp;
+
+namespace {
+
+// A wall across the world at y = 0 with a gap of `width` at x = 0, and (when half_length > 0)
+// a corridor of that width through the gap, from y = -half_length to half_length. free_standing:
+// the corridor walls only, no wall across the world (a way around).
+WorldMap corridor_map(double width, double half_length, bool free_standing = false) {
+    WorldMap m;
+    const double h = m.half_size, w = 0.5 * width, t = 0.05;
+    if (!free_standing) {
+        m.boxes.push_back({{-h, -t}, {-w, t}});
+        m.boxes.push_back({{w, -t}, {h, t}});
+    }
+    if (half_length > 0) {
+        m.boxes.push_back({{-w - 2 * t, -half_length}, {-w, half_length}});
+        m.boxes.push_back({{w, -half_length}, {w + 2 * t, half_length}});
+    }
+    return m;
+}
+int count_passages(const WorldMap& map) {
+    RouteGuide guide;
+    PassageControl pc;
+    const std::vector<int>& p = pc.passage(guide, map);
+    return 1 + *std::max_element(p.begin(), p.end());
+}
+struct Turns {
+    std::vector<char> wait;
+    std::vector<Vec2> point;
+};
+Turns arbitrate(const WorldMap& map, const std::vector<Vec2>& pos, const std::vector<Vec2>& goal, std::vector<char> at_goal = {}) {
+    RouteGuide guide;
+    PassageControl pc;
+    at_goal.resize(pos.size(), 0);
+    Turns t;
+    pc.arbitrate(guide, map, (int)pos.size(), pos.data(), goal.data(), at_goal.data(), t.wait, t.point);
+    return t;
+}
+// The point fits a waiting robot: free of the map and outside the passage.
+void check_waiting_point(const WorldMap& map, Vec2 q) {
+    RouteGuide guide;
+    PassageControl pc;
+    const std::vector<int>& p = pc.passage(guide, map);
+    CHECK(static_clearance(map, q) >= 0.14);
+    CHECK(p[guide.grid().index(q)] < 0);
+}
+
+}  // namespace
+
+TEST_CASE("passages: a long one-lane corridor with no way around; not a doorway, a wide corridor or one with a way around") {
+    CHECK(count_passages(corridor_map(0.44, 0.4)) == 1);
+    CHECK(count_passages(corridor_map(0.50, 0.4)) == 1);
+    CHECK(count_passages(corridor_map(0.70, 0.4)) == 0);                        // two robots pass side by side
+    CHECK(count_passages(corridor_map(0.44, 0)) == 0);                          // a doorway in the wall
+    CHECK(count_passages(corridor_map(0.44, 0.4, /*free standing*/ true)) == 0);  // robots can go around it
+    CHECK(count_passages(WorldMap{}) == 0);                                     // corners are no passages
+    RouteGuide guide;
+    PassageControl pc;
+    const std::vector<int>& p = pc.passage(guide, corridor_map(0.44, 0.4));
+    const ClearanceGrid& g = guide.grid();
+    CHECK(p[g.index({0, 0.2})] == 0);
+    CHECK(p[g.index({0, -0.3})] == 0);
+    CHECK(p[g.index({0, 0.8})] == -1);
+    REQUIRE(pc.mouths().size() == 2);
+    for (const auto& m : pc.mouths()) CHECK(std::abs(m.in.y) > 0.9);  // the ways in run along the corridor
+    CHECK(pc.mouth_of_cell()[g.index(pc.mouths()[0].at)] == 0);
+}
+
+TEST_CASE("passages: head-on, the nearer robot goes and the other waits outside, beside its mouth") {
+    const WorldMap map = corridor_map(0.44, 0.4);
+    for (int flip = 0; flip < 2; ++flip) {  // robot `near` is 0.3 from its mouth, the other 0.5
+        const int near = flip, far = 1 - flip;
+        std::vector<Vec2> pos(2), goal(2);
+        pos[near] = {0, -0.7}, goal[near] = {0, 0.9};
+        pos[far] = {0, 0.9}, goal[far] = {0, -0.9};
+        const Turns t = arbitrate(map, pos, goal);
+        CHECK(t.wait[near] == 0);
+        CHECK(t.point[near] == goal[near]);
+        REQUIRE(t.wait[far] == 1);
+        check_waiting_point(map, t.point[far]);
+        CHECK(t.point[far].y > 0.45);                    // on its own side
+        CHECK(t.point[far].x < -0.1);                    // to the right of its way in (heading -y)
+        CHECK(norm(t.point[far] - pos[far]) < 0.6);      // near the mouth, not sent away
+    }
+    // Going the same way, both go; an arrived robot claims nothing.
+    Turns same = arbitrate(map, {{0, -0.7}, {0.1, -1.0}}, {{0, 0.9}, {0.1, 0.8}});
+    CHECK(same.wait == std::vector<char>{0, 0});
+    Turns parked = arbitrate(map, {{0, -0.7}, {0, 0.6}}, {{0, 0.9}, {0, 0.6}}, {0, 1});
+    CHECK(parked.wait == std::vector<char>{0, 0});
+}
+
+TEST_CASE("passages: a robot that arrives after the other is out goes on; one in the passage the wrong way backs out") {
+    const WorldMap map = corridor_map(0.44, 0.4);
+    // Robot 0 is near the top end on its way up: robot 1 far above arrives after it is out.
+    Turns late = arbitrate(map, {{0, 0.3}, {0, 1.05}}, {{0, 0.9}, {0, -0.9}});
+    CHECK(late.wait == std::vector<char>{0, 0});
+    // Nearer, robot 1 would meet it inside, and waits.
+    Turns meets = arbitrate(map, {{0, 0.3}, {0, 0.7}}, {{0, 0.9}, {0, -0.9}});
+    CHECK(meets.wait == std::vector<char>{0, 1});
+    // Both in the passage, head-on: the lower index goes on, the other backs out to its own side.
+    Turns inside = arbitrate(map, {{0, 0.15}, {0, -0.15}}, {{0, -0.9}, {0, 0.9}});
+    CHECK(inside.wait[0] == 0);
+    REQUIRE(inside.wait[1] == 1);
+    CHECK(inside.point[1].y < -0.45);
+    check_waiting_point(map, inside.point[1]);
+    // A queue: two robots waiting at one mouth take different places.
+    Turns queue = arbitrate(map, {{0, -0.6}, {0, 0.7}, {0, 1.0}}, {{0, 0.9}, {0, -0.9}, {0.1, -0.7}});
+    REQUIRE(queue.wait == std::vector<char>{0, 1, 1});
+    CHECK(norm(queue.point[1] - queue.point[2]) >= 0.25);
+}
+
+TEST_CASE("passages: bad parameters are named") {
+    RouteGuide guide;
+    PassageControl pc;
+    pc.params.lookahead = -1;
+    std::vector<Vec2> pos{{0, 0}}, goal{{0, 0.5}};
+    std::vector<char> at{0}, wait;
+    std::vector<Vec2> point;
+    CHECK_THROWS_WITH_AS(pc.arbitrate(guide, WorldMap{}, 1, pos.data(), goal.data(), at.data(), wait, point),
+                         doctest::Contains("PassageParams"), std::invalid_argument);
+    pc.params.lookahead = std::nan("");
+    CHECK_THROWS_AS(pc.arbitrate(guide, WorldMap{}, 1, pos.data(), goal.data(), at.data(), wait, point), std::invalid_argument);
+}
+
+TEST_CASE("planner: with take_turns a waiting robot is given its waiting point as its goal; without, its own") {
+    ModelConfig c = tiny_config();
+    World world(corridor_map(0.44, 0.4));
+    world.add_agent({0, -0.7}, {0, 0.9});
+    world.add_agent({0, 0.9}, {0, -0.9});
+    for (int turns = 0; turns < 2; ++turns) {
+        DiffusionPlanner planner(MadbpModel(c, 1), 2);
+        planner.take_turns = turns != 0;
+        planner.plan(world);
+        CHECK(planner.last_waiting() == std::vector<char>{0, (char)turns});
+        const SceneBatch& b = planner.last_scene_batch();
+        // The model's input: robot 1 is column 1 of its scene (one scene of the team).
+        REQUIRE(b.B == 1);
+        const Vec2 told = b.goal(1, planner.config());
+        if (turns) {
+            CHECK(norm(told - planner.last_wait_points()[1]) < 1e-5);
+            CHECK(b.goal_final[1] == 1.0f);
+        } else {
+            CHECK(told.y < 0.5);  // heading through: its goal or a subgoal on the way
+        }
+    }
+}
