@@ -1901,7 +1901,11 @@ public:
     // mouth_of_cell()[k], the mouth it belongs to, or -1; mouths() lists them.
     const std::vector<int>& passage(RouteGuide& guide, const WorldMap& map) {
         const ClearanceGrid& grid = guide.grid(map);
-        if (!(map_ == map) || (int)passage_.size() != grid.n * grid.n) find_passages(grid, map);
+        const double shape[] = {params.one_lane_width, params.free_clear, params.min_length, params.bypass, grid.cell};
+        if (!(map_ == map) || (int)passage_.size() != grid.n * grid.n || !std::equal(shape, shape + 5, made_with_)) {
+            find_passages(grid, map);
+            std::copy(shape, shape + 5, made_with_);
+        }
         return passage_;
     }
     const std::vector<int>& mouth_of_cell() const { return mouth_; }
@@ -1991,7 +1995,8 @@ private:
         int entry = 0, exit = 0;  // route cells before the passage (0: in it) and before its last cell there
     };
     WorldMap map_;
-    std::vector<int> passage_, mouth_, route_, losers_, queue_, cells_;
+    double made_with_[5] = {};  // the parameters and cell the passages were found with
+    std::vector<int> passage_, mouth_, route_, losers_, queue_;
     std::vector<Mouth> mouths_;
     std::vector<Claim> claims_;
 

@@ -72,6 +72,9 @@ TEST_CASE("passages: a long one-lane corridor with no way around; not a doorway,
     REQUIRE(pc.mouths().size() == 2);
     for (const auto& m : pc.mouths()) CHECK(std::abs(m.in.y) > 0.9);  // the ways in run along the corridor
     CHECK(pc.mouth_of_cell()[g.index(pc.mouths()[0].at)] == 0);
+    pc.params.one_lane_width = 0.4;  // narrower than this corridor: found again, none
+    const std::vector<int>& q = pc.passage(guide, corridor_map(0.44, 0.4));
+    CHECK(*std::max_element(q.begin(), q.end()) == -1);
 }
 
 TEST_CASE("passages: head-on, the nearer robot goes and the other waits outside, beside its mouth") {
