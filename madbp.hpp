@@ -3195,7 +3195,7 @@ public:
     double sensing_radius = 0;  // world units; 0 = 2 position_scale (the training world's width; measured
                                 // far better than 1.2 in crowds, docs/experiments.md)
     // One-lane passages (PassageControl, madbp_sim.hpp): robots that would meet head-on in a
-    // corridor or doorway too narrow to pass side by side take turns. A robot that waits is given
+    // corridor too narrow to pass side by side, with no way around, take turns. A robot that waits is given
     // its waiting point as its goal. false: every robot heads for its goal or route subgoal.
     bool take_turns = true;
     PassageControl passages;

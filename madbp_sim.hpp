@@ -1682,6 +1682,20 @@ inline EvalResult evaluate(const EvalConfig& c, const PolicyFactory& factory) {
 // Section 12. Guided expert (SPEC 3.6)
 // =============================================================================================
 
+namespace detail {
+// Calls fn(k2) for each of the (up to 8) neighbours of cell k of an n x n grid, row by row.
+template <class Fn>
+inline void for_each_neighbour(int n, int k, Fn&& fn) {
+    const int row = k / n, col = k % n;
+    for (int dr = -1; dr <= 1; ++dr)
+        for (int dc = -1; dc <= 1; ++dc) {
+            const int r2 = row + dr, c2 = col + dc;
+            if ((dr == 0 && dc == 0) || r2 < 0 || r2 >= n || c2 < 0 || c2 >= n) continue;
+            fn(r2 * n + c2);
+        }
+}
+}  // namespace detail
+
 // Static clearance (distance from the cell centre to the nearest obstacle or wall surface) on
 // a square grid over the world; cell k is (row k / n, column k % n), row 0 = lowest y. The
 // side is the world's width in cells of about `cell_wanted`, at most `max_side` (>= 2): a larger
@@ -1714,21 +1728,16 @@ struct ClearanceGrid {
 // directions through cells whose clearance is >= `min_clear` (the goal cell always counts).
 // Breadth-first search; -1 where the goal cannot be reached.
 inline std::vector<int> wavefront(const ClearanceGrid& cg, int goal_cell, double min_clear) {
-    const int n = cg.n;
-    std::vector<int> steps((size_t)n * n, -1);
+    std::vector<int> steps((size_t)cg.n * cg.n, -1);
     std::vector<int> queue{goal_cell};
     steps[goal_cell] = 0;
     for (size_t head = 0; head < queue.size(); ++head) {
-        int k = queue[head], row = k / n, col = k % n;
-        for (int dr = -1; dr <= 1; ++dr)
-            for (int dc = -1; dc <= 1; ++dc) {
-                int r2 = row + dr, c2 = col + dc;
-                if ((dr == 0 && dc == 0) || r2 < 0 || r2 >= n || c2 < 0 || c2 >= n) continue;
-                int k2 = r2 * n + c2;
-                if (steps[k2] >= 0 || cg.clear[k2] < min_clear) continue;
-                steps[k2] = steps[k] + 1;
-                queue.push_back(k2);
-            }
+        const int k = queue[head];
+        detail::for_each_neighbour(cg.n, k, [&](int k2) {
+            if (steps[k2] >= 0 || cg.clear[k2] < min_clear) return;
+            steps[k2] = steps[k] + 1;
+            queue.push_back(k2);
+        });
     }
     return steps;
 }
@@ -1842,22 +1851,16 @@ private:
     // Downhill from cell k: among the neighbours one step closer, the one nearest the goal
     // (straighter paths); -1 when there is none.
     int downhill(const std::vector<int>& steps, int k, Vec2 goal) const {
-        const int n = grid_.n;
         int next = -1;
-        for (int dr = -1; dr <= 1; ++dr)
-            for (int dc = -1; dc <= 1; ++dc) {
-                const int r2 = k / n + dr, c2 = k % n + dc;
-                if ((dr == 0 && dc == 0) || r2 < 0 || r2 >= n || c2 < 0 || c2 >= n) continue;
-                const int k2 = r2 * n + c2;
-                if (steps[k2] != steps[k] - 1) continue;
-                if (next < 0 || norm(grid_.centre(k2) - goal) < norm(grid_.centre(next) - goal)) next = k2;
-            }
+        detail::for_each_neighbour(grid_.n, k, [&](int k2) {
+            if (steps[k2] == steps[k] - 1 && (next < 0 || norm(grid_.centre(k2) - goal) < norm(grid_.centre(next) - goal))) next = k2;
+        });
         return next;
     }
 };
 
-// One-lane passages (issue 12): corridors and doorways too narrow for two robots to pass side by
-// side. Two robots that meet head-on in one cannot settle it within a planning window: the filter
+// One-lane passages (issue 12): corridors too narrow for two robots to pass side by side, with
+// no way around. Two robots that meet head-on in one cannot settle it within a planning window: the filter
 // holds them nose to nose, or the last one through waits in the way and runs out of time. Fleets
 // settle it as traffic control does, one direction at a time, and so does PassageControl: it
 // finds the passages on a RouteGuide's grid and tells each robot of a team whether to go on or
@@ -1950,6 +1953,9 @@ public:
             }
             claims_.push_back(c);
         }
+        // A claim by another mouth waits when it would enter before a claim by the holder's mouth
+        // is out, with room for the two to clear each other (2 robot radii + 0.05).
+        const int clear_cells = (int)std::ceil(0.25 / grid.cell);
         int waiting = 0;
         for (size_t a = 0; a < claims_.size(); ++a) {
             bool seen = false;  // the first claim on each passage decides for all of its claims
@@ -1958,9 +1964,6 @@ public:
             const Claim* lead = &claims_[a];
             for (size_t b = a + 1; b < claims_.size(); ++b)
                 if (claims_[b].passage == lead->passage && claims_[b].entry < lead->entry) lead = &claims_[b];
-            // A claim by another mouth waits when it would enter before a claim by the holder's
-            // mouth is out, with room for the two to clear each other (2 robot radii + 0.05).
-            const int clear_cells = (int)std::ceil(0.25 / grid.cell);
             losers_.clear();
             for (size_t b = a; b < claims_.size(); ++b) {
                 if (claims_[b].passage != lead->passage || claims_[b].mouth == lead->mouth) continue;
@@ -1972,7 +1975,8 @@ public:
             }
             // The queue at each waiting mouth: its places from the mouth out, each to the robot
             // nearest it of those left (robots keep their places as they walk to them).
-            for (int m = 0; m < (int)mouths_.size(); ++m)
+            for (int m = 0; m < (int)mouths_.size(); ++m) {
+                if (mouths_[m].passage != lead->passage) continue;
                 for (int place = 0;; ++place) {
                     const Vec2 spot = waiting_point(grid, mouths_[m], p.wait_back + place * p.queue_spacing);
                     int best = -1;
@@ -1985,6 +1989,7 @@ public:
                     point[claims_[best].robot] = spot;
                     ++waiting;
                 }
+            }
         }
         return waiting;
     }
@@ -2021,15 +2026,10 @@ private:
         queue_.assign(1, seed);
         label[seed] = id;
         for (size_t head = 0; head < queue_.size(); ++head) {
-            const int k = queue_[head];
-            out.push_back(k);
-            for (int dr = -1; dr <= 1; ++dr)
-                for (int dc = -1; dc <= 1; ++dc) {
-                    const int r2 = k / n + dr, c2 = k % n + dc;
-                    if (r2 < 0 || r2 >= n || c2 < 0 || c2 >= n) continue;
-                    const int k2 = r2 * n + c2;
-                    if (open(k2)) label[k2] = id, queue_.push_back(k2);
-                }
+            out.push_back(queue_[head]);
+            detail::for_each_neighbour(n, queue_[head], [&](int k2) {
+                if (open(k2)) label[k2] = id, queue_.push_back(k2);
+            });
         }
     }
     // Whether a walk of at most `steps` cells through free cells outside component `id` leads from
@@ -2044,15 +2044,11 @@ private:
             const int k = queue_[head];
             if (mouth_[k] > from) return true;
             if (depth[k] >= steps) continue;
-            for (int dr = -1; dr <= 1; ++dr)
-                for (int dc = -1; dc <= 1; ++dc) {
-                    const int r2 = k / n + dr, c2 = k % n + dc;
-                    if (r2 < 0 || r2 >= n || c2 < 0 || c2 >= n) continue;
-                    const int k2 = r2 * n + c2;
-                    if (depth[k2] >= 0 || component[k2] == id || grid.clear[k2] < params.free_clear) continue;
-                    depth[k2] = depth[k] + 1;
-                    queue_.push_back(k2);
-                }
+            detail::for_each_neighbour(n, k, [&](int k2) {
+                if (depth[k2] >= 0 || component[k2] == id || grid.clear[k2] < params.free_clear) return;
+                depth[k2] = depth[k] + 1;
+                queue_.push_back(k2);
+            });
         }
         return false;
     }
@@ -2090,13 +2086,9 @@ private:
             // Its mouths: free cells beside it, not yet another passage's, grouped by connection.
             std::vector<int> beside;
             for (int c : cells)
-                for (int dr = -1; dr <= 1; ++dr)
-                    for (int dc = -1; dc <= 1; ++dc) {
-                        const int r2 = c / n + dr, c2 = c % n + dc;
-                        if (r2 < 0 || r2 >= n || c2 < 0 || c2 >= n) continue;
-                        const int k2 = r2 * n + c2;
-                        if (free_beside(k2) && mouth_[k2] == -1) mouth_[k2] = -3, beside.push_back(k2);  // -3: beside, ungrouped
-                    }
+                detail::for_each_neighbour(n, c, [&](int k2) {
+                    if (free_beside(k2) && mouth_[k2] == -1) mouth_[k2] = -3, beside.push_back(k2);  // -3: beside, ungrouped
+                });
             const size_t first_mouth = mouths_.size();
             for (int b : beside) {
                 if (mouth_[b] != -3) continue;

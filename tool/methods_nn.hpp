@@ -116,8 +116,8 @@ inline void register_nn_methods(std::vector<Method>& m) {
                  "                    --priority-weight W (safety-filter weight of the robot that goes first, as the\n"
                  "                    expert's; default 4; 1 = all equal), --lookahead L (the tracker aims L steps\n"
                  "                    ahead of the plan's waypoint for now; default 1.5, 0 = SPEC 8's),\n"
-                 "                    --take-turns 0|1 (robots meeting head-on in a one-lane corridor or doorway\n"
-                 "                    take turns, one waiting beside its mouth; default 1), --one-lane-width W\n"
+                 "                    --take-turns 0|1 (robots meeting head-on in a one-lane corridor with no way\n"
+                 "                    around take turns, one waiting beside its mouth; default 1), --one-lane-width W\n"
                  "                    (passages narrower than W wall to wall are one-lane; default 0.54)",
                  [](Args& a, const MethodSetup& s) { return madbp_method(read_planner_options(a), s); }});
 }

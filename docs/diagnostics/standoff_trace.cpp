@@ -11,7 +11,7 @@
 using namespace madbp;
 
 int main(int argc, char** argv) {
-    if (argc < 5) { std::fprintf(stderr, "usage: standoff_trace MAP SCENARIO N SEED [KEEP_RIGHT]\n"); return 2; }
+    if (argc < 5) { std::fprintf(stderr, "usage: standoff_trace MAP SCENARIO N SEED [KEEP_RIGHT [TAKE_TURNS]]\n"); return 2; }
     const std::string map = argv[1], scenario = argv[2];
     const int n = std::atoi(argv[3]);
     const uint64_t seed = std::strtoull(argv[4], nullptr, 10);
