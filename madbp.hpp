@@ -84,8 +84,9 @@
 //        SamplerConfig::validate: every sampler option is checked on either sampling path (a
 //        bad x0_clip, goal_reach or keep_right was ignored or undefined on the plain one).
 //        DiffusionPlanner::take_turns (default on): robots meeting head-on in a one-lane corridor
-//        they cannot avoid take turns (PassageControl); a robot that waits is given its waiting
-//        point as its goal. last_waiting, last_wait_points.
+//        take turns (PassageControl); a robot that waits is given its waiting point as its goal,
+//        one that goes around a corridor with a short way around its detour's route subgoal
+//        (route_goal takes ClosedCells). last_waiting, last_wait_points.
 //   0.1  neural-network core, safetensors checkpoints, MA-DBP model, DDIM sampler, planner.
 
 #ifndef MADBP_HPP
@@ -1975,12 +1976,15 @@ inline void encode_map(SceneBatch& batch, int scene, const WorldMap& map, const 
 // and in straight view; else a point D away in the direction of the route's next waypoint
 // (RouteGuide::subgoal, at most kRouteLookahead ahead). Placing it D away, not at the waypoint,
 // keeps the model's reading of a goal it has not reached: "keep going this way", as for any far
-// goal, never "stop here" (a goal between the pinning reach and D is a real goal).
+// goal, never "stop here" (a goal between the pinning reach and D is a real goal). A route that
+// keeps out of `closed` (a robot going around a corridor, PassageControl) is given as subgoals
+// even without subgoal_distance (D = kRouteLookahead then).
 constexpr double kRouteLookahead = 0.8;
-inline RouteGoal route_goal(RouteGuide& guide, const ModelConfig& c, const WorldMap& map, Vec2 pos, Vec2 goal) {
-    const double D = c.subgoal_distance;
-    if (D <= 0 || (norm(goal - pos) <= D && guide.in_view(map, pos, goal))) return {goal, true};
-    const RouteGoal next = guide.subgoal(map, pos, goal, std::min(D, kRouteLookahead));
+inline RouteGoal route_goal(RouteGuide& guide, const ModelConfig& c, const WorldMap& map, Vec2 pos, Vec2 goal,
+                            ClosedCells closed = {}) {
+    const double D = c.subgoal_distance > 0 ? c.subgoal_distance : closed.cells ? kRouteLookahead : 0;
+    if (D <= 0 || (norm(goal - pos) <= D && guide.in_view(map, pos, goal, closed))) return {goal, true};
+    const RouteGoal next = guide.subgoal(map, pos, goal, std::min(D, kRouteLookahead), closed);
     const Vec2 d = next.goal - pos;
     if (norm(d) < 1e-9) return {goal, true};  // no direction: the goal itself
     return {pos + d * (D / norm(d)), false};
@@ -3195,8 +3199,9 @@ public:
     double sensing_radius = 0;  // world units; 0 = 2 position_scale (the training world's width; measured
                                 // far better than 1.2 in crowds, docs/experiments.md)
     // One-lane passages (PassageControl, madbp_sim.hpp): robots that would meet head-on in a
-    // corridor too narrow to pass side by side, with no way around, take turns. A robot that waits is given
-    // its waiting point as its goal. false: every robot heads for its goal or route subgoal.
+    // corridor too narrow to pass side by side take turns. A robot that waits is given its
+    // waiting point as its goal; one that goes around (a corridor with a short way around) its
+    // route's subgoal with the corridor closed. false: every robot heads for its goal or route subgoal.
     bool take_turns = true;
     PassageControl passages;
 
@@ -3212,7 +3217,8 @@ public:
     MadbpModel& model() { return model_; }
     const SceneBatch& last_scene_batch() const { return batch_; }  // what the model saw in the last plan
     const ConflictWorkspace& last_candidates() const { return conflict_; }  // costs and choices of the last conflict-aware plan
-    // Per robot of the last plan: 1 = waits to take its turn through a one-lane passage (take_turns), and where.
+    // Per robot of the last plan (take_turns): PassageControl::kWait, waits to take its turn
+    // through a one-lane passage, at last_wait_points()[i]; kGoAround, goes around one; kGoOn.
     const std::vector<char>& last_waiting() const { return waiting_; }
     const std::vector<Vec2>& last_wait_points() const { return wait_point_; }
     size_t remembered_robots() const { return first_route_.size(); }  // priority keys held (ModelConfig::priority_context)
@@ -3360,10 +3366,12 @@ private:
         if (shared) update_grid(map);
         route_.resize(n);
         for (int i = 0; i < n; ++i) route_[i] = route_goal(guide_, c, map, pos_[i], goal_[i]);
-        waiting_.assign(n, 0);
+        waiting_.assign(n, PassageControl::kGoOn);
         if (take_turns && passages.arbitrate(guide_, map, n, pos_.data(), goal_.data(), at_goal_.data(), waiting_, wait_point_) > 0)
-            for (int i = 0; i < n; ++i)
-                if (waiting_[i]) route_[i] = {wait_point_[i], true};
+            for (int i = 0; i < n; ++i) {
+                if (waiting_[i] == PassageControl::kWait) route_[i] = {wait_point_[i], true};
+                if (waiting_[i] == PassageControl::kGoAround) route_[i] = route_goal(guide_, c, map, pos_[i], goal_[i], passages.closed_to(i));
+            }
         const double radius = sensing_radius > 0 ? sensing_radius : 2.0 * c.position_scale;
         // Each neighbourhood scene draws its own noise, seeded by the plan and its robot's id.
         const uint64_t plan_seed = local ? rng_.next_u64() : 0;

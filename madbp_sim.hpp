@@ -24,8 +24,10 @@
 //        priority_order over any n robots; RouteGuide::route_steps (the expert's priority key).
 //        PlanFollower's tracker aims FollowerConfig::lookahead = 1.5 steps ahead of the plan
 //        (0 = the 0.1 follower), which makes up the lag a robot builds behind a moving plan.
-//        PassageControl: robots take turns through one-lane corridors they cannot avoid (who
-//        waits, and where); RouteGuide::route_cells, RouteGuide::grid(map).
+//        PassageControl: robots take turns through one-lane corridors (who waits, and where);
+//        at one with a short way around, the robot that would wait goes around it
+//        (PassageParams::go_around; RouteGuide routes that keep out of ClosedCells).
+//        RouteGuide::route_cells, RouteGuide::grid(map).
 //   0.1  world, maps, controllers.
 
 #ifndef MADBP_SIM_HPP
@@ -147,7 +149,7 @@ inline std::string number_text(double v) {
 //   9 tracker and safety filter: track_waypoint, track_plan, safety_filter       [3.2]
 //  10 plans: Plan, Planner, validate_plan, LinePlanner, PlanFollower             [3.2, 3.5, 8]
 //  11 episodes and evaluation: EpisodeLog, run_episode, evaluate                 [9, 10]
-//  12 guided expert: ClearanceGrid, wavefront, RouteGoal, RouteGuide (route subgoals),
+//  12 guided expert: ClearanceGrid, wavefront, ClosedCells, RouteGoal, RouteGuide (route subgoals),
 //     PassageParams, PassageControl (one-lane passages), ExpertParams, GuidedExpert  [3.6]
 //  13 SVG: render_svg, write_text_file                                           [2]
 
@@ -1725,16 +1727,17 @@ struct ClearanceGrid {
 };
 
 // The wavefront: steps from every cell to `goal_cell` moving one cell per step in 8
-// directions through cells whose clearance is >= `min_clear` (the goal cell always counts).
+// directions through cells whose clearance is >= `min_clear` (the goal cell always counts) and,
+// when `closed` is given, that are not closed ((*closed)[k] != 0).
 // Breadth-first search; -1 where the goal cannot be reached.
-inline std::vector<int> wavefront(const ClearanceGrid& cg, int goal_cell, double min_clear) {
+inline std::vector<int> wavefront(const ClearanceGrid& cg, int goal_cell, double min_clear, const std::vector<char>* closed = nullptr) {
     std::vector<int> steps((size_t)cg.n * cg.n, -1);
     std::vector<int> queue{goal_cell};
     steps[goal_cell] = 0;
     for (size_t head = 0; head < queue.size(); ++head) {
         const int k = queue[head];
         detail::for_each_neighbour(cg.n, k, [&](int k2) {
-            if (steps[k2] >= 0 || cg.clear[k2] < min_clear) return;
+            if (steps[k2] >= 0 || cg.clear[k2] < min_clear || (closed && (*closed)[k2])) return;
             steps[k2] = steps[k] + 1;
             queue.push_back(k2);
         });
@@ -1748,7 +1751,15 @@ inline std::vector<int> wavefront(const ClearanceGrid& cg, int goal_cell, double
 // the last cell centre of that walk that is still in straight view of the robot (the segment
 // keeps `view_clear` from the map, checked every half cell) and at most `distance` from it. When the goal itself is
 // within `distance` and in view, or the walk arrives, the goal is returned and `final` is set.
+// A route may be asked to keep out of some cells (`ClosedCells`: a corridor others are using; the
+// walk, the view and the wavefront then avoid them).
 // Memory: the grid plus at most kMaxFields wavefronts (the cache starts again beyond).
+// Cells of a RouteGuide's grid() a route keeps out of: those with (*cells)[k] != 0. `key` names
+// the set in the guide's wavefront cache: the same key must mean the same cells on the same map.
+struct ClosedCells {
+    const std::vector<char>* cells = nullptr;
+    uint64_t key = 0;
+};
 struct RouteGoal {
     Vec2 goal;           // where to head: the goal itself or a subgoal on the way
     bool final = true;   // goal is the robot's real goal (the planner may pin the window's end to it)
@@ -1761,11 +1772,11 @@ public:
     double view_clear = 0.1;    // a subgoal is visible when the segment to it keeps this clearance (robot radius)
 
     // The subgoal from p toward goal on `map`, at most `distance` (> 0) world units from p.
-    RouteGoal subgoal(const WorldMap& map, Vec2 p, Vec2 goal, double distance) {
+    RouteGoal subgoal(const WorldMap& map, Vec2 p, Vec2 goal, double distance, ClosedCells closed = {}) {
         if (!(distance > 0) || !std::isfinite(distance)) throw std::invalid_argument("RouteGuide: distance must be a positive number");
         set_map(map);
-        if (norm(goal - p) <= distance && visible(p, goal)) return {goal, true};
-        const std::vector<int>& steps = field(grid_.index(goal));
+        if (norm(goal - p) <= distance && visible(p, goal, closed)) return {goal, true};
+        const std::vector<int>& steps = field(grid_.index(goal), closed);
         int k = start_cell(steps, grid_.index(p));
         if (k < 0) return {goal, true};  // no route known from here: head straight for the goal
         Vec2 sub = grid_.centre(k);
@@ -1774,7 +1785,7 @@ public:
             if (next < 0) break;
             k = next;
             const Vec2 c = steps[k] == 0 ? goal : grid_.centre(k);
-            if (norm(c - p) > distance || !visible(p, c)) break;
+            if (norm(c - p) > distance || !visible(p, c, closed)) break;
             sub = c;
             if (steps[k] == 0) return {goal, true};
         }
@@ -1793,10 +1804,10 @@ public:
             k = steps[k] > 0 ? downhill(steps, k, goal) : -1;
         }
     }
-    // The segment a-b keeps view_clear from `map` (checked every half cell).
-    bool in_view(const WorldMap& map, Vec2 a, Vec2 b) {
+    // The segment a-b keeps view_clear from `map` (checked every half cell) and out of `closed`.
+    bool in_view(const WorldMap& map, Vec2 a, Vec2 b, ClosedCells closed = {}) {
         set_map(map);
-        return visible(a, b);
+        return visible(a, b, closed);
     }
     const ClearanceGrid& grid() const { return grid_; }
     const ClearanceGrid& grid(const WorldMap& map) { set_map(map); return grid_; }  // the grid made for `map`
@@ -1819,18 +1830,21 @@ private:
         map_ = map;
         fields_.clear();
     }
-    std::map<int, std::vector<int>> fields_;  // goal cell -> wavefront steps
+    std::map<std::pair<int, uint64_t>, std::vector<int>> fields_;  // (goal cell, closed key) -> wavefront steps
 
-    const std::vector<int>& field(int goal_cell) {
-        auto it = fields_.find(goal_cell);
+    const std::vector<int>& field(int goal_cell, ClosedCells closed = {}) {
+        const std::pair<int, uint64_t> key{goal_cell, closed.cells ? closed.key : 0};
+        auto it = fields_.find(key);
         if (it != fields_.end()) return it->second;
         if ((int)fields_.size() >= kMaxFields) fields_.clear();
-        return fields_.emplace(goal_cell, wavefront(grid_, goal_cell, clear)).first->second;
+        return fields_.emplace(key, wavefront(grid_, goal_cell, clear, closed.cells)).first->second;
     }
-    bool visible(Vec2 a, Vec2 b) const {
+    bool visible(Vec2 a, Vec2 b, ClosedCells closed = {}) const {
         const int samples = 1 + (int)std::ceil(norm(b - a) / (0.5 * grid_.cell));
-        for (int i = 0; i <= samples; ++i)
-            if (static_clearance(map_, a + (b - a) * ((double)i / samples)) < view_clear) return false;
+        for (int i = 0; i <= samples; ++i) {
+            const Vec2 q = a + (b - a) * ((double)i / samples);
+            if (static_clearance(map_, q) < view_clear || (closed.cells && (*closed.cells)[grid_.index(q)])) return false;
+        }
         return true;
     }
     // Where a walk on `steps` starts from cell k: k, or when k is too close to the map the
@@ -1869,8 +1883,8 @@ private:
 //     one of 8 directions, crosses the free space in less than one_lane_width - 2 free_clear
 //     (no room for a second centre 2 radius + a margin away). A passage: an 8-connected set of
 //     them with two mouths (the connected sets of free cells beside it) at least min_length
-//     apart and no way around within `bypass`: a corridor robots cannot avoid, not a doorway, a
-//     corner, a dead end or a junction.
+//     apart: a corridor, not a doorway, a corner, a dead end or a junction. One with a way around
+//     at most `bypass` longer is avoidable.
 //   - A robot's claim: the first passage on its route (RouteGuide::route_cells) within
 //     `lookahead`, how far along the route it starts (0: the robot is in it) and the mouth it
 //     enters by (in it: the mouth nearest it other than the one its route leaves by).
@@ -1878,7 +1892,9 @@ private:
 //     enter by another mouth wait in a queue at theirs: places wait_back out from the mouth's
 //     centre, then every queue_spacing, each wait_side to the right of the way in (to the left,
 //     or on that line, where there is no room), each taken by the robot nearest it of those left.
-//     A robot in the passage that must wait backs out.
+//     A robot in the passage that must wait backs out. At an avoidable passage a robot that
+//     would wait outside it goes around instead (go_around): its route keeps out of the passage
+//     (closed_to, ClosedCells) while the holders are in it.
 // Claims are made afresh at every call from positions and goals alone, so robots that plan for
 // themselves with the same information reach the same decision.
 struct PassageParams {
@@ -1888,8 +1904,9 @@ struct PassageParams {
     double wait_back = 0.3;        // the nearest waiting robot waits this far out from its mouth,
     double queue_spacing = 0.3;    // each next one this much farther,
     double wait_side = 0.25;       // and this far to the right of the way in
-    double min_length = 0.5;       // only passages whose mouths are this far apart (corridors, not doorways),
-    double bypass = 1.0;           // and with no way around that is at most this much longer
+    double min_length = 0.5;       // only passages whose mouths are this far apart (corridors, not doorways);
+    double bypass = 1.0;           // one with a way around at most this much longer is avoidable:
+    bool go_around = true;         // robots that would wait go around it (false: it is no passage)
 };
 class PassageControl {
 public:
@@ -1904,19 +1921,21 @@ public:
     // mouth_of_cell()[k], the mouth it belongs to, or -1; mouths() lists them.
     const std::vector<int>& passage(RouteGuide& guide, const WorldMap& map) {
         const ClearanceGrid& grid = guide.grid(map);
-        const double shape[] = {params.one_lane_width, params.free_clear, params.min_length, params.bypass, grid.cell};
-        if (!(map_ == map) || (int)passage_.size() != grid.n * grid.n || !std::equal(shape, shape + 5, made_with_)) {
+        const double shape[] = {params.one_lane_width, params.free_clear, params.min_length, params.bypass, (double)params.go_around, grid.cell};
+        if (!(map_ == map) || (int)passage_.size() != grid.n * grid.n || !std::equal(shape, shape + 6, made_with_)) {
             find_passages(grid, map);
-            std::copy(shape, shape + 5, made_with_);
+            std::copy(shape, shape + 6, made_with_);
         }
         return passage_;
     }
     const std::vector<int>& mouth_of_cell() const { return mouth_; }
+    const std::vector<char>& avoidable() const { return avoidable_; }  // per passage: has a way around within `bypass`
     const std::vector<Mouth>& mouths() const { return mouths_; }
 
     // For robots i < n at pos[i] heading for goal[i] (at_goal[i]: arrived, claims nothing):
-    // wait[i] = 1 and point[i] = where to wait, or wait[i] = 0 (go on; point[i] = goal[i]).
-    // Returns how many wait.
+    // wait[i] = kWait and point[i] = where to wait; kGoAround (keep out of the passage
+    // closed_to(i) on the way to goal[i]); or kGoOn (point[i] = goal[i]). Returns how many do not go on.
+    enum Turn : char { kGoOn = 0, kWait = 1, kGoAround = 2 };
     int arbitrate(RouteGuide& guide, const WorldMap& map, int n, const Vec2* pos, const Vec2* goal, const char* at_goal,
                   std::vector<char>& wait, std::vector<Vec2>& point) {
         const PassageParams& p = params;
@@ -1925,8 +1944,9 @@ public:
             if (!(v >= 0) || !std::isfinite(v)) throw std::invalid_argument("PassageParams: every length must be a finite number >= 0 (got " + number_text(v) + ")");
         const std::vector<int>& cell_passage = passage(guide, map);
         const ClearanceGrid& grid = guide.grid();
-        wait.assign(n, 0);
+        wait.assign(n, kGoOn);
         point.assign(goal, goal + n);
+        around_.assign(n, -1);
         claims_.clear();
         if (mouths_.empty()) return 0;
         const int max_cells = 2 + (int)std::ceil(p.lookahead / grid.cell);
@@ -1971,7 +1991,14 @@ public:
                 for (size_t h = a; h < claims_.size(); ++h)
                     meets = meets || (claims_[h].passage == lead->passage && claims_[h].mouth == lead->mouth &&
                                       claims_[b].entry <= claims_[h].exit + clear_cells);
-                if (meets) losers_.push_back((int)b);
+                if (!meets) continue;
+                if (avoidable_[lead->passage] && claims_[b].entry > 0) {
+                    wait[claims_[b].robot] = kGoAround;
+                    around_[claims_[b].robot] = lead->passage;
+                    ++waiting;
+                } else {
+                    losers_.push_back((int)b);
+                }
             }
             // The queue at each waiting mouth: its places from the mouth out, each to the robot
             // nearest it of those left (robots keep their places as they walk to them).
@@ -1985,13 +2012,18 @@ public:
                         if (claims_[b].mouth == m && !wait[r] && (best < 0 || norm(pos[r] - spot) < norm(pos[claims_[best].robot] - spot))) best = b;
                     }
                     if (best < 0) break;
-                    wait[claims_[best].robot] = 1;
+                    wait[claims_[best].robot] = kWait;
                     point[claims_[best].robot] = spot;
                     ++waiting;
                 }
             }
         }
         return waiting;
+    }
+    // The cells robot i of the last arbitrate() keeps out of (its passage's; none unless it goes around).
+    ClosedCells closed_to(int i) const {
+        if (i < 0 || i >= (int)around_.size() || around_[i] < 0) return {};
+        return {&closed_[around_[i]], closed_key_[around_[i]]};
     }
 
 private:
@@ -2000,9 +2032,12 @@ private:
         int entry = 0, exit = 0;  // route cells before the passage (0: in it) and before its last cell there
     };
     WorldMap map_;
-    double made_with_[5] = {};  // the parameters and cell the passages were found with
-    std::vector<int> passage_, mouth_, route_, losers_, queue_;
+    double made_with_[6] = {};  // the parameters and cell the passages were found with
+    std::vector<int> passage_, mouth_, route_, losers_, queue_, around_;
     std::vector<Mouth> mouths_;
+    std::vector<char> avoidable_;               // per passage: it has a way around within `bypass`
+    std::vector<std::vector<char>> closed_;     // per passage: its cells, as ClosedCells reads them
+    std::vector<uint64_t> closed_key_;
     std::vector<Claim> claims_;
 
     // Where the robot waits that is `distance` out from mouth m: right of the way in, left, or on it,
@@ -2076,6 +2111,9 @@ private:
         passage_.assign((size_t)n * n, -1);
         mouth_.assign((size_t)n * n, -1);
         mouths_.clear();
+        avoidable_.clear();
+        closed_.clear();
+        closed_key_.clear();
         std::vector<int> component((size_t)n * n, -1), cells, group;
         int passages = 0, components = 0;
         for (int k = 0; k < n * n; ++k) {
@@ -2108,16 +2146,26 @@ private:
                 mouths_.push_back(m);
             }
             // A corner or a dead end (one mouth) is no passage; nor is a junction (three or more),
-            // a doorway (mouths less than min_length apart) or one with a way around at most `bypass` longer.
+            // a doorway (mouths less than min_length apart), or without go_around one with a way
+            // around at most `bypass` longer.
             double length = 0;
             for (size_t m = first_mouth + 1; m < mouths_.size(); ++m) length = std::max(length, norm(mouths_[m].at - mouths_[first_mouth].at));
-            if (mouths_.size() - first_mouth != 2 || length < params.min_length ||
-                way_around(grid, component, id, (int)first_mouth, (int)std::ceil((length + params.bypass) / grid.cell))) {
+            const bool corridor = mouths_.size() - first_mouth == 2 && length >= params.min_length;
+            const bool avoidable = corridor && way_around(grid, component, id, (int)first_mouth, (int)std::ceil((length + params.bypass) / grid.cell));
+            if (!corridor || (avoidable && !params.go_around)) {
                 for (int b : beside) mouth_[b] = -1;
                 mouths_.resize(first_mouth);
                 continue;
             }
-            for (int c : cells) passage_[c] = passages;
+            avoidable_.push_back(avoidable);
+            closed_.emplace_back((size_t)n * n, 0);
+            uint64_t key = 1469598103934665603ull;  // FNV-1a of the cells: the same key means the same cells
+            for (int c : cells) {
+                passage_[c] = passages;
+                closed_.back()[c] = 1;
+                key = (key ^ (uint64_t)c) * 1099511628211ull;
+            }
+            closed_key_.push_back(key | 1);  // never 0 (no cells)
             ++passages;
         }
         map_ = map;

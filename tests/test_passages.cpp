@@ -1,6 +1,7 @@
 // One-lane passages (issue 12): PassageControl (madbp_sim.hpp Section 12) finds the corridors
 // robots must take turns in and says who waits where; DiffusionPlanner::take_turns hands a waiting
-// robot its waiting point as its goal.
+// robot its waiting point as its goal, and one that goes around a corridor with a way around
+// its route with the corridor closed.
 #include <doctest/doctest.h>
 
 #include "madbp.hpp"
@@ -36,14 +37,17 @@ struct Turns {
     std::vector<char> wait;
     std::vector<Vec2> point;
 };
-Turns arbitrate(const WorldMap& map, const std::vector<Vec2>& pos, const std::vector<Vec2>& goal, std::vector<char> at_goal = {}) {
+Turns arbitrate(const WorldMap& map, const std::vector<Vec2>& pos, const std::vector<Vec2>& goal, std::vector<char> at_goal = {},
+                PassageControl* control = nullptr) {
     RouteGuide guide;
-    PassageControl pc;
+    PassageControl own;
+    PassageControl& pc = control ? *control : own;
     at_goal.resize(pos.size(), 0);
     Turns t;
     pc.arbitrate(guide, map, (int)pos.size(), pos.data(), goal.data(), at_goal.data(), t.wait, t.point);
     return t;
 }
+constexpr char kGoOn = PassageControl::kGoOn, kWait = PassageControl::kWait, kAround = PassageControl::kGoAround;
 // The point fits a waiting robot: free of the map and outside the passage.
 void check_waiting_point(const WorldMap& map, Vec2 q) {
     RouteGuide guide;
@@ -55,15 +59,24 @@ void check_waiting_point(const WorldMap& map, Vec2 q) {
 
 }  // namespace
 
-TEST_CASE("passages: a long one-lane corridor with no way around; not a doorway, a wide corridor or one with a way around") {
+TEST_CASE("passages: a long one-lane corridor, avoidable when it has a way around; not a doorway or a wide corridor") {
     CHECK(count_passages(corridor_map(0.44, 0.4)) == 1);
     CHECK(count_passages(corridor_map(0.50, 0.4)) == 1);
     CHECK(count_passages(corridor_map(0.70, 0.4)) == 0);                        // two robots pass side by side
     CHECK(count_passages(corridor_map(0.44, 0)) == 0);                          // a doorway in the wall
-    CHECK(count_passages(corridor_map(0.44, 0.4, /*free standing*/ true)) == 0);  // robots can go around it
     CHECK(count_passages(WorldMap{}) == 0);                                     // corners are no passages
     RouteGuide guide;
     PassageControl pc;
+    pc.passage(guide, corridor_map(0.44, 0.4));
+    CHECK(pc.avoidable() == std::vector<char>{0});
+    const WorldMap free_standing = corridor_map(0.44, 0.4, /*free standing*/ true);
+    const std::vector<int>& around = pc.passage(guide, free_standing);  // robots can go around it
+    CHECK(pc.avoidable() == std::vector<char>{1});
+    CHECK(around[guide.grid().index({0, 0})] == 0);
+    pc.params.go_around = false;  // then it is left to the model: found again, none
+    const std::vector<int>& none = pc.passage(guide, free_standing);
+    CHECK(*std::max_element(none.begin(), none.end()) == -1);
+    pc.params.go_around = true;
     const std::vector<int>& p = pc.passage(guide, corridor_map(0.44, 0.4));
     const ClearanceGrid& g = guide.grid();
     CHECK(p[g.index({0, 0.2})] == 0);
@@ -85,9 +98,9 @@ TEST_CASE("passages: head-on, the nearer robot goes and the other waits outside,
         pos[near] = {0, -0.7}, goal[near] = {0, 0.9};
         pos[far] = {0, 0.9}, goal[far] = {0, -0.9};
         const Turns t = arbitrate(map, pos, goal);
-        CHECK(t.wait[near] == 0);
+        CHECK(t.wait[near] == kGoOn);
         CHECK(t.point[near] == goal[near]);
-        REQUIRE(t.wait[far] == 1);
+        REQUIRE(t.wait[far] == kWait);
         check_waiting_point(map, t.point[far]);
         CHECK(t.point[far].y > 0.45);                    // on its own side
         CHECK(t.point[far].x < -0.1);                    // to the right of its way in (heading -y)
@@ -95,29 +108,61 @@ TEST_CASE("passages: head-on, the nearer robot goes and the other waits outside,
     }
     // Going the same way, both go; an arrived robot claims nothing.
     Turns same = arbitrate(map, {{0, -0.7}, {0.1, -1.0}}, {{0, 0.9}, {0.1, 0.8}});
-    CHECK(same.wait == std::vector<char>{0, 0});
+    CHECK(same.wait == std::vector<char>{kGoOn, kGoOn});
     Turns parked = arbitrate(map, {{0, -0.7}, {0, 0.6}}, {{0, 0.9}, {0, 0.6}}, {0, 1});
-    CHECK(parked.wait == std::vector<char>{0, 0});
+    CHECK(parked.wait == std::vector<char>{kGoOn, kGoOn});
 }
 
 TEST_CASE("passages: a robot that arrives after the other is out goes on; one in the passage the wrong way backs out") {
     const WorldMap map = corridor_map(0.44, 0.4);
     // Robot 0 is near the top end on its way up: robot 1 far above arrives after it is out.
     Turns late = arbitrate(map, {{0, 0.3}, {0, 1.05}}, {{0, 0.9}, {0, -0.9}});
-    CHECK(late.wait == std::vector<char>{0, 0});
+    CHECK(late.wait == std::vector<char>{kGoOn, kGoOn});
     // Nearer, robot 1 would meet it inside, and waits.
     Turns meets = arbitrate(map, {{0, 0.3}, {0, 0.7}}, {{0, 0.9}, {0, -0.9}});
-    CHECK(meets.wait == std::vector<char>{0, 1});
+    CHECK(meets.wait == std::vector<char>{kGoOn, kWait});
     // Both in the passage, head-on: the lower index goes on, the other backs out to its own side.
     Turns inside = arbitrate(map, {{0, 0.15}, {0, -0.15}}, {{0, -0.9}, {0, 0.9}});
-    CHECK(inside.wait[0] == 0);
-    REQUIRE(inside.wait[1] == 1);
+    CHECK(inside.wait[0] == kGoOn);
+    REQUIRE(inside.wait[1] == kWait);
     CHECK(inside.point[1].y < -0.45);
     check_waiting_point(map, inside.point[1]);
     // A queue: two robots waiting at one mouth take different places.
     Turns queue = arbitrate(map, {{0, -0.6}, {0, 0.7}, {0, 1.0}}, {{0, 0.9}, {0, -0.9}, {0.1, -0.7}});
-    REQUIRE(queue.wait == std::vector<char>{0, 1, 1});
+    REQUIRE(queue.wait == std::vector<char>{kGoOn, kWait, kWait});
     CHECK(norm(queue.point[1] - queue.point[2]) >= 0.25);
+}
+
+TEST_CASE("passages: at a corridor with a way around, the robot that would wait goes around it, and its route keeps out") {
+    const WorldMap map = corridor_map(0.44, 0.4, /*free standing*/ true);
+    PassageControl pc;
+    const Turns t = arbitrate(map, {{0, -0.7}, {0, 0.9}}, {{0, 0.9}, {0, -0.9}}, {}, &pc);
+    REQUIRE(t.wait == std::vector<char>{kGoOn, kAround});
+    CHECK(t.point[1] == Vec2{0, -0.9});
+    const ClosedCells closed = pc.closed_to(1);
+    REQUIRE(closed.cells != nullptr);
+    CHECK(pc.closed_to(0).cells == nullptr);
+    // Walking robot 1's route subgoals with the corridor closed: it arrives without entering it,
+    // out of the corridor's strip (|x| <= 0.32) while level with it.
+    RouteGuide guide;
+    Vec2 p{0, 0.9};
+    bool arrived = false;
+    for (int step = 0; step < 40 && !arrived; ++step) {
+        const RouteGoal r = guide.subgoal(map, p, {0, -0.9}, 0.3, closed);
+        for (int k = 1; k <= 10; ++k) {
+            const Vec2 q = p + (r.goal - p) * (k / 10.0);
+            CHECK((*closed.cells)[guide.grid(map).index(q)] == 0);
+            if (std::abs(q.y) < 0.4) CHECK(std::abs(q.x) > 0.32);
+        }
+        arrived = r.final && norm(r.goal - Vec2{0, -0.9}) < 1e-9;
+        p = r.goal;
+    }
+    CHECK(arrived);
+    // Without the corridor closed the route runs through it.
+    CHECK(std::abs(guide.subgoal(map, {0, 0.9}, {0, -0.9}, 0.6).goal.x) < 0.1);
+    // A robot already in the corridor the wrong way backs out, as where there is no way around.
+    const Turns inside = arbitrate(map, {{0, 0.15}, {0, -0.15}}, {{0, -0.9}, {0, 0.9}});
+    CHECK(inside.wait == std::vector<char>{kGoOn, kWait});
 }
 
 TEST_CASE("passages: bad parameters are named") {
@@ -142,7 +187,7 @@ TEST_CASE("planner: with take_turns a waiting robot is given its waiting point a
         DiffusionPlanner planner(MadbpModel(c, 1), 2);
         planner.take_turns = turns != 0;
         planner.plan(world);
-        CHECK(planner.last_waiting() == std::vector<char>{0, (char)turns});
+        CHECK(planner.last_waiting() == std::vector<char>{kGoOn, turns ? kWait : kGoOn});
         const SceneBatch& b = planner.last_scene_batch();
         // The model's input: robot 1 is column 1 of its scene (one scene of the team).
         REQUIRE(b.B == 1);
@@ -154,4 +199,21 @@ TEST_CASE("planner: with take_turns a waiting robot is given its waiting point a
             CHECK(told.y < 0.5);  // heading through: its goal or a subgoal on the way
         }
     }
+}
+
+TEST_CASE("planner: a robot going around a corridor is given a subgoal beside it, not its goal") {
+    ModelConfig c = tiny_config();
+    c.subgoal_distance = 0.6;
+    World world(corridor_map(0.44, 0.4, /*free standing*/ true));
+    world.add_agent({0, -0.7}, {0, 0.9});
+    world.add_agent({0, 0.9}, {0, -0.9});
+    DiffusionPlanner planner(MadbpModel(c, 1), 2);
+    planner.plan(world);
+    REQUIRE(planner.last_waiting() == std::vector<char>{kGoOn, kAround});
+    const SceneBatch& b = planner.last_scene_batch();
+    REQUIRE(b.B == 1);
+    const Vec2 told = b.goal(1, planner.config());
+    CHECK(b.goal_final[1] == 0.0f);        // a subgoal, never pinned
+    CHECK(std::abs(told.x) > 0.2);         // off the corridor's axis: around it
+    CHECK(told.y < 0.9);                   // and on the way down
 }

@@ -26,6 +26,7 @@ struct PlannerOptions {
     double lookahead = madbp::FollowerConfig{}.lookahead;  // 0: track the waypoint planned for this step
     bool take_turns = true;    // DiffusionPlanner::take_turns (one-lane passages)
     double one_lane_width = madbp::PassageParams{}.one_lane_width;
+    bool go_around = madbp::PassageParams{}.go_around;  // PassageParams::go_around
 };
 // "A,M,G": the agent, map and goal weights of the window cost.
 inline void read_cost_weights(const std::string& s, madbp::WindowCost& w) {
@@ -57,6 +58,7 @@ inline PlannerOptions read_planner_options(Args& a) {
     o.lookahead = a.real("--lookahead", o.lookahead, 0, madbp::kMaxLookahead);
     o.take_turns = a.integer("--take-turns", 1, 0, 1) != 0;
     o.one_lane_width = a.real("--one-lane-width", o.one_lane_width, 0, 100);
+    o.go_around = a.integer("--go-around", o.go_around ? 1 : 0, 0, 1) != 0;
     return o;
 }
 
@@ -83,6 +85,7 @@ inline madbp::PolicyFactory planner_factory(std::shared_ptr<const madbp::MadbpMo
         planner->sampler.cost = o.cost;
         planner->take_turns = o.take_turns;
         planner->passages.params.one_lane_width = o.one_lane_width;
+        planner->passages.params.go_around = o.go_around;
         return std::make_unique<madbp::PlanFollower>([planner](const madbp::World& w) { return planner->plan(w); }, fc);
     };
 }
@@ -116,9 +119,11 @@ inline void register_nn_methods(std::vector<Method>& m) {
                  "                    --priority-weight W (safety-filter weight of the robot that goes first, as the\n"
                  "                    expert's; default 4; 1 = all equal), --lookahead L (the tracker aims L steps\n"
                  "                    ahead of the plan's waypoint for now; default 1.5, 0 = SPEC 8's),\n"
-                 "                    --take-turns 0|1 (robots meeting head-on in a one-lane corridor with no way\n"
-                 "                    around take turns, one waiting beside its mouth; default 1), --one-lane-width W\n"
-                 "                    (passages narrower than W wall to wall are one-lane; default 0.54)",
+                 "                    --take-turns 0|1 (robots meeting head-on in a one-lane corridor take turns,\n"
+                 "                    one waiting beside its mouth; default 1), --go-around 0|1 (where the corridor\n"
+                 "                    has a way around at most 1.0 longer, the one that would wait goes around it;\n"
+                 "                    default 1), --one-lane-width W (passages narrower than W wall to wall are\n"
+                 "                    one-lane; default 0.54)",
                  [](Args& a, const MethodSetup& s) { return madbp_method(read_planner_options(a), s); }});
 }
 
