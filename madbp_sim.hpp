@@ -1745,21 +1745,22 @@ inline std::vector<int> wavefront(const ClearanceGrid& cg, int goal_cell, double
     return steps;
 }
 
-// Route subgoals (issue 13): where a robot should head next on its shortest way around the
-// static map to a goal that may be far away. The wavefront of the goal's cell (computed once per
-// map and goal cell, like the expert's) is walked downhill from the robot's cell; the subgoal is
-// the last cell centre of that walk that is still in straight view of the robot (the segment
-// keeps `view_clear` from the map, checked every half cell) and at most `distance` from it. When the goal itself is
-// within `distance` and in view, or the walk arrives, the goal is returned and `final` is set.
-// A route may be asked to keep out of some cells (`ClosedCells`: a corridor others are using; the
-// walk, the view and the wavefront then avoid them).
-// Memory: the grid plus at most kMaxFields wavefronts (the cache starts again beyond).
 // Cells of a RouteGuide's grid() a route keeps out of: those with (*cells)[k] != 0. `key` names
 // the set in the guide's wavefront cache: the same key must mean the same cells on the same map.
 struct ClosedCells {
     const std::vector<char>* cells = nullptr;
     uint64_t key = 0;
 };
+
+// Route subgoals (issue 13): where a robot should head next on its shortest way around the
+// static map to a goal that may be far away. The wavefront of the goal's cell (computed once per
+// map and goal cell, like the expert's) is walked downhill from the robot's cell; the subgoal is
+// the last cell centre of that walk that is still in straight view of the robot (the segment
+// keeps `view_clear` from the map, checked every half cell) and at most `distance` from it. When the goal itself is
+// within `distance` and in view, or the walk arrives, the goal is returned and `final` is set.
+// A route may be asked to keep out of some cells (ClosedCells: a corridor others are using; the
+// walk, the view and the wavefront then avoid them).
+// Memory: the grid plus at most kMaxFields wavefronts (the cache starts again beyond).
 struct RouteGoal {
     Vec2 goal;           // where to head: the goal itself or a subgoal on the way
     bool final = true;   // goal is the robot's real goal (the planner may pin the window's end to it)
@@ -1775,6 +1776,7 @@ public:
     RouteGoal subgoal(const WorldMap& map, Vec2 p, Vec2 goal, double distance, ClosedCells closed = {}) {
         if (!(distance > 0) || !std::isfinite(distance)) throw std::invalid_argument("RouteGuide: distance must be a positive number");
         set_map(map);
+        check(closed);
         if (norm(goal - p) <= distance && visible(p, goal, closed)) return {goal, true};
         const std::vector<int>& steps = field(grid_.index(goal), closed);
         int k = start_cell(steps, grid_.index(p));
@@ -1807,6 +1809,7 @@ public:
     // The segment a-b keeps view_clear from `map` (checked every half cell) and out of `closed`.
     bool in_view(const WorldMap& map, Vec2 a, Vec2 b, ClosedCells closed = {}) {
         set_map(map);
+        check(closed);
         return visible(a, b, closed);
     }
     const ClearanceGrid& grid() const { return grid_; }
@@ -1838,6 +1841,11 @@ private:
         if (it != fields_.end()) return it->second;
         if ((int)fields_.size() >= kMaxFields) fields_.clear();
         return fields_.emplace(key, wavefront(grid_, goal_cell, clear, closed.cells)).first->second;
+    }
+    void check(ClosedCells closed) const {
+        if (closed.cells && closed.cells->size() != (size_t)grid_.n * grid_.n)
+            throw std::invalid_argument("ClosedCells.cells: needs one entry per cell of the guide's grid (" + std::to_string(grid_.n * grid_.n) +
+                                        "), got " + std::to_string(closed.cells->size()));
     }
     bool visible(Vec2 a, Vec2 b, ClosedCells closed = {}) const {
         const int samples = 1 + (int)std::ceil(norm(b - a) / (0.5 * grid_.cell));

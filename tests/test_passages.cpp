@@ -158,6 +158,9 @@ TEST_CASE("passages: at a corridor with a way around, the robot that would wait 
         p = r.goal;
     }
     CHECK(arrived);
+    // A closed set that does not match the grid is named.
+    const std::vector<char> wrong(7, 0);
+    CHECK_THROWS_WITH_AS(guide.subgoal(map, p, {0, -0.9}, 0.3, {&wrong, 5}), doctest::Contains("ClosedCells.cells"), std::invalid_argument);
     // Without the corridor closed the route runs through it.
     CHECK(std::abs(guide.subgoal(map, {0, 0.9}, {0, -0.9}, 0.6).goal.x) < 0.1);
     // A robot already in the corridor the wrong way backs out, as where there is no way around.
