@@ -1982,7 +1982,7 @@ inline void encode_map(SceneBatch& batch, int scene, const WorldMap& map, const 
 constexpr double kRouteLookahead = 0.8;
 inline RouteGoal route_goal(RouteGuide& guide, const ModelConfig& c, const WorldMap& map, Vec2 pos, Vec2 goal,
                             ClosedCells closed = {}) {
-    const double D = c.subgoal_distance > 0 ? c.subgoal_distance : closed.cells ? kRouteLookahead : 0;
+    const double D = c.subgoal_distance > 0 ? c.subgoal_distance : closed.label ? kRouteLookahead : 0;
     if (D <= 0 || (norm(goal - pos) <= D && guide.in_view(map, pos, goal, closed))) return {goal, true};
     const RouteGoal next = guide.subgoal(map, pos, goal, std::min(D, kRouteLookahead), closed);
     const Vec2 d = next.goal - pos;
@@ -3364,14 +3364,13 @@ private:
             grid_valid_ = false;
         }
         if (shared) update_grid(map);
-        route_.resize(n);
-        for (int i = 0; i < n; ++i) route_[i] = route_goal(guide_, c, map, pos_[i], goal_[i]);
         waiting_.assign(n, PassageControl::kGoOn);
-        if (take_turns && passages.arbitrate(guide_, map, n, pos_.data(), goal_.data(), at_goal_.data(), waiting_, wait_point_) > 0)
-            for (int i = 0; i < n; ++i) {
-                if (waiting_[i] == PassageControl::kWait) route_[i] = {wait_point_[i], true};
-                if (waiting_[i] == PassageControl::kGoAround) route_[i] = route_goal(guide_, c, map, pos_[i], goal_[i], passages.closed_to(i));
-            }
+        if (take_turns) passages.arbitrate(guide_, map, n, pos_.data(), goal_.data(), at_goal_.data(), waiting_, wait_point_);
+        route_.resize(n);
+        for (int i = 0; i < n; ++i)
+            route_[i] = waiting_[i] == PassageControl::kWait ? RouteGoal{wait_point_[i], true}
+                        : route_goal(guide_, c, map, pos_[i], goal_[i],
+                                     waiting_[i] == PassageControl::kGoAround ? passages.closed_to(i) : ClosedCells{});
         const double radius = sensing_radius > 0 ? sensing_radius : 2.0 * c.position_scale;
         // Each neighbourhood scene draws its own noise, seeded by the plan and its robot's id.
         const uint64_t plan_seed = local ? rng_.next_u64() : 0;

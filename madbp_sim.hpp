@@ -1726,31 +1726,33 @@ struct ClearanceGrid {
     Vec2 centre(int k) const { return {-half + (k % n + 0.5) * cell, -half + (k / n + 0.5) * cell}; }
 };
 
+// Cells of a grid a route keeps out of: those k with (*label)[k] == id (a PassageControl
+// passage: its passage() labels and index). `key` names the set in a RouteGuide's wavefront
+// cache: the same key must mean the same cells on the same map. Default: none closed.
+struct ClosedCells {
+    const std::vector<int>* label = nullptr;
+    int id = -1;
+    uint64_t key = 0;
+    bool closes(int k) const { return label && (*label)[k] == id; }
+};
+
 // The wavefront: steps from every cell to `goal_cell` moving one cell per step in 8
-// directions through cells whose clearance is >= `min_clear` (the goal cell always counts) and,
-// when `closed` is given, that are not closed ((*closed)[k] != 0).
-// Breadth-first search; -1 where the goal cannot be reached.
-inline std::vector<int> wavefront(const ClearanceGrid& cg, int goal_cell, double min_clear, const std::vector<char>* closed = nullptr) {
+// directions through cells whose clearance is >= `min_clear` (the goal cell always counts) and
+// that `closed` does not close. Breadth-first search; -1 where the goal cannot be reached.
+inline std::vector<int> wavefront(const ClearanceGrid& cg, int goal_cell, double min_clear, ClosedCells closed = {}) {
     std::vector<int> steps((size_t)cg.n * cg.n, -1);
     std::vector<int> queue{goal_cell};
     steps[goal_cell] = 0;
     for (size_t head = 0; head < queue.size(); ++head) {
         const int k = queue[head];
         detail::for_each_neighbour(cg.n, k, [&](int k2) {
-            if (steps[k2] >= 0 || cg.clear[k2] < min_clear || (closed && (*closed)[k2])) return;
+            if (steps[k2] >= 0 || cg.clear[k2] < min_clear || closed.closes(k2)) return;
             steps[k2] = steps[k] + 1;
             queue.push_back(k2);
         });
     }
     return steps;
 }
-
-// Cells of a RouteGuide's grid() a route keeps out of: those with (*cells)[k] != 0. `key` names
-// the set in the guide's wavefront cache: the same key must mean the same cells on the same map.
-struct ClosedCells {
-    const std::vector<char>* cells = nullptr;
-    uint64_t key = 0;
-};
 
 // Route subgoals (issue 13): where a robot should head next on its shortest way around the
 // static map to a goal that may be far away. The wavefront of the goal's cell (computed once per
@@ -1836,22 +1838,22 @@ private:
     std::map<std::pair<int, uint64_t>, std::vector<int>> fields_;  // (goal cell, closed key) -> wavefront steps
 
     const std::vector<int>& field(int goal_cell, ClosedCells closed = {}) {
-        const std::pair<int, uint64_t> key{goal_cell, closed.cells ? closed.key : 0};
+        const std::pair<int, uint64_t> key{goal_cell, closed.label ? closed.key : 0};
         auto it = fields_.find(key);
         if (it != fields_.end()) return it->second;
         if ((int)fields_.size() >= kMaxFields) fields_.clear();
-        return fields_.emplace(key, wavefront(grid_, goal_cell, clear, closed.cells)).first->second;
+        return fields_.emplace(key, wavefront(grid_, goal_cell, clear, closed)).first->second;
     }
     void check(ClosedCells closed) const {
-        if (closed.cells && closed.cells->size() != (size_t)grid_.n * grid_.n)
-            throw std::invalid_argument("ClosedCells.cells: needs one entry per cell of the guide's grid (" + std::to_string(grid_.n * grid_.n) +
-                                        "), got " + std::to_string(closed.cells->size()));
+        if (closed.label && closed.label->size() != (size_t)grid_.n * grid_.n)
+            throw std::invalid_argument("ClosedCells.label: needs one entry per cell of the guide's grid (" + std::to_string(grid_.n * grid_.n) +
+                                        "), got " + std::to_string(closed.label->size()));
     }
     bool visible(Vec2 a, Vec2 b, ClosedCells closed = {}) const {
         const int samples = 1 + (int)std::ceil(norm(b - a) / (0.5 * grid_.cell));
         for (int i = 0; i <= samples; ++i) {
             const Vec2 q = a + (b - a) * ((double)i / samples);
-            if (static_clearance(map_, q) < view_clear || (closed.cells && (*closed.cells)[grid_.index(q)])) return false;
+            if (static_clearance(map_, q) < view_clear || closed.closes(grid_.index(q))) return false;
         }
         return true;
     }
@@ -1881,12 +1883,13 @@ private:
     }
 };
 
-// One-lane passages (issue 12): corridors too narrow for two robots to pass side by side, with
-// no way around. Two robots that meet head-on in one cannot settle it within a planning window: the filter
-// holds them nose to nose, or the last one through waits in the way and runs out of time. Fleets
+// One-lane passages (issue 12): corridors too narrow for two robots to pass side by side. Two
+// robots that meet head-on in one cannot settle it within a planning window: the filter holds
+// them nose to nose, or the last one through waits in the way and runs out of time. Fleets
 // settle it as traffic control does, one direction at a time, and so does PassageControl: it
-// finds the passages on a RouteGuide's grid and tells each robot of a team whether to go on or
-// to wait beside the passage's mouth while a robot that entered from another mouth holds it.
+// finds the passages on a RouteGuide's grid and tells each robot of a team whether to go on, to
+// wait beside the passage's mouth while a robot that entered from another mouth holds it, or
+// (where the corridor has a short way around) to go around it.
 //   - One-lane cell: a centre fits there (clearance >= free_clear) and some line through it, in
 //     one of 8 directions, crosses the free space in less than one_lane_width - 2 free_clear
 //     (no room for a second centre 2 radius + a margin away). A passage: an 8-connected set of
@@ -2031,7 +2034,7 @@ public:
     // The cells robot i of the last arbitrate() keeps out of (its passage's; none unless it goes around).
     ClosedCells closed_to(int i) const {
         if (i < 0 || i >= (int)around_.size() || around_[i] < 0) return {};
-        return {&closed_[around_[i]], closed_key_[around_[i]]};
+        return {&passage_, around_[i], closed_key_[around_[i]]};
     }
 
 private:
@@ -2043,9 +2046,8 @@ private:
     double made_with_[6] = {};  // the parameters and cell the passages were found with
     std::vector<int> passage_, mouth_, route_, losers_, queue_, around_;
     std::vector<Mouth> mouths_;
-    std::vector<char> avoidable_;               // per passage: it has a way around within `bypass`
-    std::vector<std::vector<char>> closed_;     // per passage: its cells, as ClosedCells reads them
-    std::vector<uint64_t> closed_key_;
+    std::vector<char> avoidable_;    // per passage: it has a way around within `bypass`
+    std::vector<uint64_t> closed_key_;  // per passage: ClosedCells::key of its cells
     std::vector<Claim> claims_;
 
     // Where the robot waits that is `distance` out from mouth m: right of the way in, left, or on it,
@@ -2120,7 +2122,6 @@ private:
         mouth_.assign((size_t)n * n, -1);
         mouths_.clear();
         avoidable_.clear();
-        closed_.clear();
         closed_key_.clear();
         std::vector<int> component((size_t)n * n, -1), cells, group;
         int passages = 0, components = 0;
@@ -2166,11 +2167,9 @@ private:
                 continue;
             }
             avoidable_.push_back(avoidable);
-            closed_.emplace_back((size_t)n * n, 0);
             uint64_t key = 1469598103934665603ull;  // FNV-1a of the cells: the same key means the same cells
             for (int c : cells) {
                 passage_[c] = passages;
-                closed_.back()[c] = 1;
                 key = (key ^ (uint64_t)c) * 1099511628211ull;
             }
             closed_key_.push_back(key | 1);  // never 0 (no cells)

@@ -140,8 +140,8 @@ TEST_CASE("passages: at a corridor with a way around, the robot that would wait 
     REQUIRE(t.wait == std::vector<char>{kGoOn, kAround});
     CHECK(t.point[1] == Vec2{0, -0.9});
     const ClosedCells closed = pc.closed_to(1);
-    REQUIRE(closed.cells != nullptr);
-    CHECK(pc.closed_to(0).cells == nullptr);
+    REQUIRE(closed.label != nullptr);
+    CHECK(pc.closed_to(0).label == nullptr);
     // Walking robot 1's route subgoals with the corridor closed: it arrives without entering it,
     // out of the corridor's strip (|x| <= 0.32) while level with it.
     RouteGuide guide;
@@ -151,7 +151,7 @@ TEST_CASE("passages: at a corridor with a way around, the robot that would wait 
         const RouteGoal r = guide.subgoal(map, p, {0, -0.9}, 0.3, closed);
         for (int k = 1; k <= 10; ++k) {
             const Vec2 q = p + (r.goal - p) * (k / 10.0);
-            CHECK((*closed.cells)[guide.grid(map).index(q)] == 0);
+            CHECK(!closed.closes(guide.grid(map).index(q)));
             if (std::abs(q.y) < 0.4) CHECK(std::abs(q.x) > 0.32);
         }
         arrived = r.final && norm(r.goal - Vec2{0, -0.9}) < 1e-9;
@@ -159,8 +159,8 @@ TEST_CASE("passages: at a corridor with a way around, the robot that would wait 
     }
     CHECK(arrived);
     // A closed set that does not match the grid is named.
-    const std::vector<char> wrong(7, 0);
-    CHECK_THROWS_WITH_AS(guide.subgoal(map, p, {0, -0.9}, 0.3, {&wrong, 5}), doctest::Contains("ClosedCells.cells"), std::invalid_argument);
+    const std::vector<int> wrong(7, 0);
+    CHECK_THROWS_WITH_AS(guide.subgoal(map, p, {0, -0.9}, 0.3, {&wrong, 0, 5}), doctest::Contains("ClosedCells.label"), std::invalid_argument);
     // Without the corridor closed the route runs through it.
     CHECK(std::abs(guide.subgoal(map, {0, 0.9}, {0, -0.9}, 0.6).goal.x) < 0.1);
     // A robot already in the corridor the wrong way backs out, as where there is no way around.

@@ -56,7 +56,7 @@ inline PlannerOptions read_planner_options(Args& a) {
     o.cost.agent_margin = (float)a.real("--cost-margin", o.cost.agent_margin, 0, 10);
     o.priority_weight = a.real("--priority-weight", o.priority_weight, 1, 1000);
     o.lookahead = a.real("--lookahead", o.lookahead, 0, madbp::kMaxLookahead);
-    o.take_turns = a.integer("--take-turns", 1, 0, 1) != 0;
+    o.take_turns = a.integer("--take-turns", o.take_turns ? 1 : 0, 0, 1) != 0;
     o.one_lane_width = a.real("--one-lane-width", o.one_lane_width, 0, 100);
     o.go_around = a.integer("--go-around", o.go_around ? 1 : 0, 0, 1) != 0;
     return o;

@@ -3,7 +3,8 @@
 // right"). Shows whether a stalled pair's plans stand still or run through each other.
 //   g++ -std=c++17 -O2 -I. -isystem /usr/include/eigen3 docs/diagnostics/standoff_trace.cpp -o build/standoff_trace
 //   build/standoff_trace MAP SCENARIO N SEED [KEEP_RIGHT [TAKE_TURNS]]   (e.g. build/standoff_trace empty corridor 4 1001 0)
-// A robot told to wait for a one-lane passage (DiffusionPlanner::take_turns) is marked "waits at (x, y)".
+// A robot told to wait for a one-lane passage (DiffusionPlanner::take_turns) is marked "waits at
+// (x, y)", one told to go around a corridor "goes around".
 #include <cstdio>
 #include <cstdlib>
 
@@ -25,7 +26,7 @@ int main(int argc, char** argv) {
     int passage_cells = 0;
     RouteGuide guide;
     for (int p : planner.passages.passage(guide, w.map())) passage_cells += p >= 0;
-    std::printf("one-lane cells: %d\n", passage_cells);
+    std::printf("passage cells: %d\n", passage_cells);
     for (const Agent& a : w.agents()) std::printf("robot %d: (%.2f, %.2f) -> (%.2f, %.2f)\n", a.id, a.pos.x, a.pos.y, a.goal.x, a.goal.y);
     int last_plans = 0;
     while (!w.done()) {
@@ -38,7 +39,9 @@ int main(int argc, char** argv) {
                 const Agent& a = w.agents()[w.index_of(p.ids[i])];
                 const Vec2 e = p.waypoints[i][std::min<size_t>(7, p.waypoints[i].size() - 1)];
                 std::printf("  %d: (%5.2f, %5.2f) -> (%5.2f, %5.2f)%s", a.id, a.pos.x, a.pos.y, e.x, e.y, w.at_goal(a) ? " at goal" : "");
-                if (planner.last_waiting()[i]) std::printf(" waits at (%.2f, %.2f)", planner.last_wait_points()[i].x, planner.last_wait_points()[i].y);
+                if (planner.last_waiting()[i] == PassageControl::kWait)
+                    std::printf(" waits at (%.2f, %.2f)", planner.last_wait_points()[i].x, planner.last_wait_points()[i].y);
+                if (planner.last_waiting()[i] == PassageControl::kGoAround) std::printf(" goes around");
             }
             std::printf("\n");
         }
