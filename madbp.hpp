@@ -69,7 +69,8 @@
 //   4 model parts: ConvBlock, AgentAttention, FilmUNet, StepEmbedding, ContextEncoder,
 //     TrajectoryProcessor                                                              [5]
 //   5 the model: MadbpModel, save_model, load_model                                      [5, 11]
-//   6 diffusion: NoiseSchedule, SamplerConfig, sample_windows (DDIM with inpainting)      [6]
+//   6 diffusion: NoiseSchedule, SamplerConfig, sample_windows (DDIM with inpainting,
+//     guidance, best-of-k, keep-right, end bend)                                        [6]
 //   7 planner: DiffusionPlanner (plan, neighbourhoods, take_turns, plan_robot)           [8]
 //
 // Changelog
@@ -86,7 +87,9 @@
 //        DiffusionPlanner::take_turns (default on): robots meeting head-on in a one-lane corridor
 //        take turns (PassageControl); a robot that waits is given its waiting point as its goal,
 //        one that goes around a corridor with a short way around its detour's route subgoal
-//        (route_goal takes ClosedCells). last_waiting, last_wait_points.
+//        (route_goal takes ClosedCells). last_waiting, last_wait_points. SamplerConfig::end_bend:
+//        a window that heads for a goal within reach but stops short is bent to arrive; the
+//        planner samples with kDefaultEndBend.
 //   0.1  neural-network core, safetensors checkpoints, MA-DBP model, DDIM sampler, planner.
 
 #ifndef MADBP_HPP
@@ -2716,6 +2719,9 @@ constexpr float kDefaultGuidance = 0.004f;
 // The keep-right push DiffusionPlanner samples with (SamplerConfig::keep_right; the bare sampler's
 // default is 0): tuned on seeds 1000-1099 (docs/experiments.md, "Keep right").
 constexpr float kDefaultKeepRight = 300.f;
+// The end bend DiffusionPlanner samples with (SamplerConfig::end_bend; the bare sampler's default
+// is 0): tuned on seeds 1000-1299 (docs/experiments.md, "Windows that arrive").
+constexpr float kDefaultEndBend = 1.f;
 
 // The map's clearance (static_clearance: distance to the nearest obstacle or wall surface,
 // world units, negative inside) sampled at the nodes of a square grid of spacing `cell` over the
@@ -3016,6 +3022,12 @@ struct SamplerConfig {
     // are also pushed apart sideways, each to the right of their relative motion (window_cost),
     // so a head-on pair passes instead of stopping nose to nose. Not a cost gradient; 0 = off.
     float keep_right = 0;
+    // In [0, 1]: after the draw, a window whose end is pinned to the goal (goal_inpaint) and whose
+    // waypoint H-2 is nearer that goal than the robot is has its free waypoints t = 1 .. H-2
+    // moved by end_bend * t / (H-2) * (goal - waypoint H-2): it arrives instead of stopping short
+    // and jumping to the goal at its last waypoint. A window that leaves its goal (a robot making
+    // way) is kept. 0 = off (DiffusionPlanner samples with kDefaultEndBend).
+    float end_bend = 0;
     bool conflict_aware() const { return guidance != 0 || candidates != 1; }
     // Throws std::invalid_argument naming the first field out of range; K: the model's diffusion
     // steps. sample_windows calls it, whichever path the options take.
@@ -3029,6 +3041,7 @@ struct SamplerConfig {
         if (!(guidance >= 0) || !std::isfinite(guidance)) bad("guidance", "a finite number >= 0", guidance);
         if (candidates < 1 || candidates > kMaxCandidates) bad("candidates", "in [1, kMaxCandidates = " + std::to_string(kMaxCandidates) + "]", candidates);
         if (!(keep_right >= 0) || !std::isfinite(keep_right)) bad("keep_right", "a finite number >= 0", keep_right);
+        if (!(end_bend >= 0 && end_bend <= 1)) bad("end_bend", "in [0, 1]", end_bend);
         const std::pair<const char*, float> weights[] = {{"cost.radius", cost.radius},           {"cost.agent_margin", cost.agent_margin},
                                                          {"cost.map_margin", cost.map_margin},   {"cost.agent_weight", cost.agent_weight},
                                                          {"cost.map_weight", cost.map_weight},   {"cost.goal_weight", cost.goal_weight}};
@@ -3049,6 +3062,22 @@ inline void impose_pins(const SceneBatch& batch, const ModelConfig& c, const Sam
         w.col(0).setZero();
         Eigen::Vector2f end;
         if (sc.goal_inpaint && end_pinned(batch, a, c, sc.goal_reach, &end)) w.col(H - 1).head<2>() = end;  // a fixed-size target: no vector loads past `end`
+    }
+}
+
+// SamplerConfig::end_bend on drawn windows x (2, H*A). The model's windows near a goal often
+// stop 0.05-0.3 short of it, or wander with others about, and only the inpainted last waypoint
+// is at the goal; the tracker follows the first replan steps, so the robot never gets there.
+inline void bend_to_pinned_ends(const SceneBatch& batch, const ModelConfig& c, const SamplerConfig& sc, Mat& x) {
+    const int H = c.horizon;
+    if (sc.end_bend <= 0 || !sc.goal_inpaint || H < 3) return;
+    for (int a = 0; a < batch.agents(); ++a) {
+        Eigen::Vector2f end;
+        if (batch.agent_mask[a] == 0 || !end_pinned(batch, a, c, sc.goal_reach, &end)) continue;
+        auto w = x.middleCols((long)a * H, H);
+        const Eigen::Vector2f gap = end - w.col(H - 2).head<2>();
+        if (gap.norm() >= end.norm()) continue;  // not heading for the goal (t = 0 is the robot, at 0)
+        for (int t = 1; t <= H - 2; ++t) w.col(t).head<2>() += gap * (sc.end_bend * (float)t / (float)(H - 2));
     }
 }
 
@@ -3142,6 +3171,7 @@ void sample_windows(Denoiser& model, const NoiseSchedule& schedule, const SceneB
         if (!cw || cw->fields.clearance.nodes == 0)
             throw std::invalid_argument("sampler: guidance and candidates need a ConflictWorkspace holding the map's distance field (set_map)");
         detail::sample_conflict_aware(model, schedule, batch, sc, rng, x, *cw);
+        detail::bend_to_pinned_ends(batch, model.config, sc, x);
         return;
     }
     const ModelConfig& c = model.config;
@@ -3166,6 +3196,7 @@ void sample_windows(Denoiser& model, const NoiseSchedule& schedule, const SceneB
         }
         detail::impose_pins(batch, c, sc, x);
     }
+    detail::bend_to_pinned_ends(batch, c, sc, x);
 }
 
 // =============================================================================================
@@ -3212,6 +3243,7 @@ public:
         sampler.goal_reach = default_goal_reach(model_.config);
         sampler.guidance = kDefaultGuidance;
         sampler.keep_right = kDefaultKeepRight;
+        sampler.end_bend = kDefaultEndBend;
     }
     const ModelConfig& config() const { return model_.config; }
     MadbpModel& model() { return model_; }

@@ -466,7 +466,9 @@ TEST_CASE("sampler: with guidance off and k = 1 it is today's sampler, bit for b
     ModelConfig c = tiny_config();
     DiffusionPlanner planner(MadbpModel(c, 4), 21);
     CHECK(planner.sampler.guidance == kDefaultGuidance);
+    CHECK(planner.sampler.end_bend == kDefaultEndBend);
     planner.sampler.guidance = 0;
+    planner.sampler.end_bend = 0;
     World world = make_random_world("barrier", 3, 6);
     const Plan p = planner.plan(world);
     MadbpModel copy(c, 4);
@@ -555,6 +557,8 @@ TEST_CASE("sampler: every option is checked on either path, and a bad one is nam
                        {"candidates", [](SamplerConfig& o) { o.candidates = 0; }},
                        {"guidance", [](SamplerConfig& o) { o.guidance = -1; }},
                        {"keep_right", [](SamplerConfig& o) { o.keep_right = -1; }},
+                       {"end_bend", [](SamplerConfig& o) { o.end_bend = 1.5f; }},
+                       {"end_bend", [&](SamplerConfig& o) { o.end_bend = nan; }},
                        {"cost.agent_margin", [](SamplerConfig& o) { o.cost.agent_margin = -0.1f; }},
                        {"cost.goal_weight", [](SamplerConfig& o) { o.cost.goal_weight = INFINITY; }}};
     for (bool guided : {false, true})
@@ -834,4 +838,57 @@ TEST_CASE("priority context: the expert's order in the pose, in training and in 
     DiffusionPlanner plain(MadbpModel(c, 3), 5);
     plain.plan(w);
     CHECK(plain.last_scene_batch().pose.rows() == 4);
+}
+
+TEST_CASE("sampler: the end bend makes a window that heads for its pinned goal arrive, and keeps one that leaves") {
+    // Robot 0 heads for its goal 0.3 ahead but the oracle's window stops 0.1 short of it; robot 1's
+    // goal is 0.2 away too, but its window leaves it (making way); robot 2's goal is out of reach.
+    const ModelConfig c = tiny_config();
+    const int H = c.horizon;
+    SceneBatch s;
+    s.resize(1, 3, c, true);
+    encode_map(s, 0, WorldMap{}, c);
+    encode_agent(s, 0, 0, {0, 0}, {0.3, 0}, WorldMap{}, c);
+    encode_agent(s, 1, 1, {0.5, 0.5}, {0.5, 0.7}, WorldMap{}, c);
+    encode_agent(s, 2, 2, {-0.5, 0.5}, {-0.5, -0.5}, WorldMap{}, c);
+    s.count[0] = 3;
+    OracleDenoiser oracle{c, Mat::Zero(2, (long)H * 3)};
+    for (int t = 0; t < H; ++t) {
+        oracle.x0(0, t) = (float)(std::min(0.04 * t, 0.2) / c.window_scale);
+        oracle.x0(1, H + t) = (float)(-0.02 * t / c.window_scale);
+        oracle.x0(1, 2 * H + t) = (float)(-0.02 * t / c.window_scale);
+    }
+    NoiseSchedule sched(c.diffusion_steps);
+    ConflictWorkspace cw;
+    cw.set_map(WorldMap{});
+    for (int candidates : {1, 2}) {  // the plain path and the conflict-aware one
+        CAPTURE(candidates);
+        SamplerConfig sc;
+        sc.candidates = candidates;
+        Mat plain, bent, half, out;
+        std::vector<int> buf;
+        Rng r1(3), r2(3), r3(3);
+        sample_windows(oracle, sched, s, sc, r1, plain, out, buf, &cw);
+        sc.end_bend = 1;
+        sample_windows(oracle, sched, s, sc, r2, bent, out, buf, &cw);
+        sc.end_bend = 0.5f;
+        sample_windows(oracle, sched, s, sc, r3, half, out, buf, &cw);
+        const float end = (float)(0.3 / c.window_scale);
+        REQUIRE(plain(0, H - 1) == doctest::Approx(end));            // pinned
+        REQUIRE(plain(0, H - 2) == doctest::Approx(0.2 / c.window_scale).epsilon(1e-3));  // stops short
+        CHECK(bent(0, 0) == 0);
+        CHECK(bent(0, H - 2) == doctest::Approx(end).epsilon(1e-5));  // arrives one waypoint early
+        CHECK(half(0, H - 2) == doctest::Approx(0.5 * (plain(0, H - 2) + end)).epsilon(1e-5));
+        for (int t = 1; t <= H - 2; ++t) {
+            const float moved = (end - plain(0, H - 2)) * (float)t / (float)(H - 2);
+            CHECK(bent(0, t) == doctest::Approx(plain(0, t) + moved).epsilon(1e-5));
+            CHECK(bent(1, t) == doctest::Approx(plain(1, t)).epsilon(1e-5).scale(1e-6));
+        }
+        CHECK(bent.middleCols(H, 2 * H) == plain.middleCols(H, 2 * H));  // robot 1 leaves its goal, robot 2's is out of reach
+        sc.goal_inpaint = false;  // nothing is pinned: nothing bends
+        Rng r4(3);
+        sample_windows(oracle, sched, s, sc, r4, bent, out, buf, &cw);
+        CHECK(bent.middleCols(0, H) != plain.middleCols(0, H));
+        CHECK(bent(0, H - 2) == doctest::Approx(plain(0, H - 2)).epsilon(1e-5));
+    }
 }

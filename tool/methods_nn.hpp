@@ -21,6 +21,7 @@ struct PlannerOptions {
     double guidance = madbp::kDefaultGuidance;  // SamplerConfig::guidance (0: off)
     int candidates = 1;        // SamplerConfig::candidates (1: off)
     double keep_right = madbp::kDefaultKeepRight;  // SamplerConfig::keep_right (0: off)
+    double end_bend = madbp::kDefaultEndBend;  // SamplerConfig::end_bend (0: off)
     madbp::WindowCost cost;    // SamplerConfig::cost
     double priority_weight = madbp::FollowerConfig{}.priority_weight;  // 1: the filter weighs robots equally
     double lookahead = madbp::FollowerConfig{}.lookahead;  // 0: track the waypoint planned for this step
@@ -52,6 +53,7 @@ inline PlannerOptions read_planner_options(Args& a) {
     o.guidance = a.real("--guidance", madbp::kDefaultGuidance, 0, 1e6);
     o.candidates = (int)a.integer("--candidates", 1, 1, madbp::kMaxCandidates);
     o.keep_right = a.real("--keep-right", madbp::kDefaultKeepRight, 0, 1e6);
+    o.end_bend = a.real("--end-bend", o.end_bend, 0, 1);
     read_cost_weights(a.str("--cost-weights", ""), o.cost);
     o.cost.agent_margin = (float)a.real("--cost-margin", o.cost.agent_margin, 0, 10);
     o.priority_weight = a.real("--priority-weight", o.priority_weight, 1, 1000);
@@ -82,6 +84,7 @@ inline madbp::PolicyFactory planner_factory(std::shared_ptr<const madbp::MadbpMo
         planner->sampler.guidance = (float)o.guidance;
         planner->sampler.candidates = o.candidates;
         planner->sampler.keep_right = (float)o.keep_right;
+        planner->sampler.end_bend = (float)o.end_bend;
         planner->sampler.cost = o.cost;
         planner->take_turns = o.take_turns;
         planner->passages.params.one_lane_width = o.one_lane_width;
@@ -116,6 +119,8 @@ inline void register_nn_methods(std::vector<Method>& m) {
                  "                    goal; default 100,100,200), --cost-margin M (robot-robot, default 0.05),\n"
                  "                    --keep-right K (robots meeting in the guided windows are also pushed to the\n"
                  "                    right of their relative motion, so they pass; default 300, 0 = off),\n"
+                 "                    --end-bend B (a window heading for a goal within reach is bent to arrive\n"
+                 "                    there, not stop short; in [0, 1], default 1, 0 = off),\n"
                  "                    --priority-weight W (safety-filter weight of the robot that goes first, as the\n"
                  "                    expert's; default 4; 1 = all equal), --lookahead L (the tracker aims L steps\n"
                  "                    ahead of the plan's waypoint for now; default 1.5, 0 = SPEC 8's),\n"
