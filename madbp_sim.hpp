@@ -27,7 +27,8 @@
 //        PassageControl: robots take turns through one-lane corridors (who waits, and where);
 //        at one with a short way around, the robot that would wait goes around it
 //        (PassageParams::go_around; RouteGuide routes that keep out of ClosedCells).
-//        RouteGuide::route_cells, RouteGuide::grid(map).
+//        RouteGuide::route_cells, RouteGuide::grid(map). PlanFollower's filter is follower_filter()
+//        (barrier rate 4/s; the expert and SafetyFilterParams{} keep 2.5).
 //   0.1  world, maps, controllers.
 
 #ifndef MADBP_SIM_HPP
@@ -1455,6 +1456,17 @@ inline double priority_weight_of(int rank, int n, double first) { return n > 1 ?
 
 constexpr double kMaxLookahead = 1000;  // FollowerConfig::lookahead: past a window's end the tracker holds its last waypoint
 
+// The plan follower's safety filter: SPEC 3.2's, with a barrier rate of 4/s where the expert's
+// is 2.5/s. The rate bounds the closing speed to rate x gap, so at 2.5 two robots meeting
+// head-on start braking ~0.3 apart and crawl past each other; MA-DBP's guided windows already
+// keep them apart, and at 4 its teams of four took 2-3 % fewer steps with 0 collisions
+// (docs/experiments.md, "The follower's filter rate"). Demonstrations and the expert keep 2.5.
+inline SafetyFilterParams follower_filter() {
+    SafetyFilterParams p;
+    p.rate = 4;
+    return p;
+}
+
 // Executes plans (SPEC 8): replans every `replan_every` steps (and whenever the set of agents
 // changed or the window ran out), tracks the waypoints with the tracker, then applies the
 // safety filter when enabled. Make one per episode.
@@ -1462,7 +1474,7 @@ struct FollowerConfig {
     int replan_every = 8;        // m, steps executed per plan, >= 1
     bool safety_filter = true;   // run the SPEC 3.2 filter after the tracker
     TrackerParams tracker;
-    SafetyFilterParams filter;
+    SafetyFilterParams filter = follower_filter();
     // Safety-filter weight of the robot that goes first, >= 1 (1: all equal, SPEC 3.2). As in
     // the guided expert (and with its default, 4): robots still travelling go before robots at
     // their goals, then the one farther from its goal when the follower first saw it, then the
@@ -1486,8 +1498,16 @@ public:
             throw std::invalid_argument("priority_weight: must be finite and >= 1 (got " + std::to_string(cfg_.priority_weight) + ")");
         if (!(cfg_.lookahead >= 0) || !(cfg_.lookahead <= kMaxLookahead))
             throw std::invalid_argument("lookahead: must be in [0, " + std::to_string(kMaxLookahead) + "] steps (got " + std::to_string(cfg_.lookahead) + ")");
+        if (!(cfg_.filter.rate > 0) || !std::isfinite(cfg_.filter.rate))
+            throw std::invalid_argument("filter.rate: must be finite and > 0 (got " + std::to_string(cfg_.filter.rate) + ")");
+        if (!(cfg_.filter.margin >= 0) || !(cfg_.filter.static_margin >= 0) || !(cfg_.filter.range >= 0))
+            throw std::invalid_argument("filter: margin, static_margin and range must be >= 0");
     }
     std::vector<Vec2> act(const World& world) override {
+        // At rate x dt >= 1 one step could close a whole gap: the barrier no longer holds.
+        if (cfg_.safety_filter && !(cfg_.filter.rate * world.config().dt < 1))
+            throw std::invalid_argument("filter.rate: must be < 1/dt = " + std::to_string(1 / world.config().dt) + " per second (got " +
+                                        std::to_string(cfg_.filter.rate) + ")");
         if (needs_plan(world)) {
             auto t0 = std::chrono::steady_clock::now();
             Plan p = planner_(world);

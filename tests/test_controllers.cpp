@@ -149,11 +149,12 @@ TEST_CASE("safety filter: agents never overlap in a crowded crossing (and do wit
             CHECK(w.metrics().agent_collisions > 0);
         }
     }
-    // Random nominal actions pushing agents at each other, obstacles and walls.
-    for (int seed = 0; seed < 10; ++seed) {
+    // Random nominal actions pushing agents at each other, obstacles and walls, with SPEC 3.2's
+    // barrier rate and the plan follower's faster one.
+    for (int seed = 0; seed < 20; ++seed) {
         World w = make_random_world("obstacles", 8, seed);
         Rng rng(seed);
-        SafetyFilterParams sp;
+        SafetyFilterParams sp = seed % 2 ? follower_filter() : SafetyFilterParams{};
         for (int t = 0; t < 100; ++t) {
             std::vector<Vec2> nominal;
             for (const Agent& a : w.agents()) {
@@ -314,6 +315,51 @@ TEST_CASE("PlanFollower: lookahead aims between later waypoints; in steady track
         fc.lookahead = bad;
         CHECK_THROWS_WITH_AS(PlanFollower(LinePlanner{}, fc), doctest::Contains("lookahead"), std::invalid_argument);
     }
+}
+
+TEST_CASE("PlanFollower: its filter's faster barrier lets robots close in sooner, never overlap; bad rates are refused") {
+    CHECK(FollowerConfig{}.filter.rate == 4);
+    CHECK(SafetyFilterParams{}.rate == 2.5);  // SPEC 3.2's, the expert's and the straight line's
+    // Two robots head-on at top speed, a step off the centre line so that they can slide past.
+    auto head_on = [](double rate, double& closest) {
+        World w;
+        w.add_agent({-0.8, 0.01}, {0.8, 0.01});
+        w.add_agent({0.8, -0.01}, {-0.8, -0.01});
+        FollowerConfig fc;
+        fc.filter.rate = rate;
+        LinePlanner line;
+        line.speed = 0.4;
+        PlanFollower f(line, fc);
+        closest = 1e9;
+        int first_near = -1;  // the step at which their gap first falls below 0.05
+        while (!w.done()) {
+            w.step(f.act(w));
+            const double d = norm(w.agents()[0].pos - w.agents()[1].pos);
+            closest = std::min(closest, d);
+            if (first_near < 0 && d < 0.25) first_near = w.t();
+        }
+        CHECK(w.metrics().agent_collisions == 0);
+        return first_near;
+    };
+    double closest_spec = 0, closest_follower = 0;
+    const int near_spec = head_on(2.5, closest_spec), near_follower = head_on(FollowerConfig{}.filter.rate, closest_follower);
+    MESSAGE("gap below 0.05 at step " << near_spec << " (rate 2.5), " << near_follower << " (4); closest " << closest_spec << ", " << closest_follower);
+    CHECK(near_follower > 0);
+    CHECK(near_follower < near_spec);
+    CHECK(closest_follower >= 0.2);
+    for (double bad : {0.0, -1.0, (double)NAN}) {
+        FollowerConfig fc;
+        fc.filter.rate = bad;
+        CHECK_THROWS_WITH_AS(PlanFollower(LinePlanner{}, fc), doctest::Contains("filter.rate"), std::invalid_argument);
+    }
+    // Checked against the world's step: at rate x dt >= 1 one step could close the whole gap.
+    FollowerConfig fast;
+    fast.filter.rate = 10;
+    PlanFollower too_fast(LinePlanner{}, fast);
+    World w = crowded_circle(2);
+    CHECK_THROWS_WITH_AS(too_fast.act(w), doctest::Contains("filter.rate"), std::invalid_argument);
+    fast.safety_filter = false;  // without the filter the rate is not used
+    CHECK_NOTHROW(PlanFollower(LinePlanner{}, fast).act(w));
 }
 
 TEST_CASE("wavefront: steps around a wall, unreachable behind a closed one") {

@@ -77,7 +77,8 @@ inline std::vector<Method> methods() {
                      fc.safety_filter = s.filter;
                      fc.replan_every = s.replan;
                      fc.priority_weight = 1;  // the SPEC 3.5 baseline as measured throughout: equal weights,
-                     fc.lookahead = a.real("--lookahead", 0, 0, madbp::kMaxLookahead);  // and the waypoint planned for this step
+                     fc.lookahead = a.real("--lookahead", 0, 0, madbp::kMaxLookahead);  // the waypoint planned for this step
+                     fc.filter = madbp::SafetyFilterParams{};  // and SPEC 3.2's filter rate, 2.5/s
                      return MethodSpec{[fc](const madbp::World&, uint64_t) {
                          return std::make_unique<madbp::PlanFollower>(madbp::LinePlanner{}, fc);
                      }};

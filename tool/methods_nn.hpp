@@ -25,6 +25,7 @@ struct PlannerOptions {
     madbp::WindowCost cost;    // SamplerConfig::cost
     double priority_weight = madbp::FollowerConfig{}.priority_weight;  // 1: the filter weighs robots equally
     double lookahead = madbp::FollowerConfig{}.lookahead;  // 0: track the waypoint planned for this step
+    double filter_rate = madbp::FollowerConfig{}.filter.rate;  // the safety filter's barrier rate, 1/s
     bool take_turns = true;    // DiffusionPlanner::take_turns (one-lane passages)
     double one_lane_width = madbp::PassageParams{}.one_lane_width;
     bool go_around = madbp::PassageParams{}.go_around;  // PassageParams::go_around
@@ -58,6 +59,7 @@ inline PlannerOptions read_planner_options(Args& a) {
     o.cost.agent_margin = (float)a.real("--cost-margin", o.cost.agent_margin, 0, 10);
     o.priority_weight = a.real("--priority-weight", o.priority_weight, 1, 1000);
     o.lookahead = a.real("--lookahead", o.lookahead, 0, madbp::kMaxLookahead);
+    o.filter_rate = a.real("--filter-rate", o.filter_rate, 0.01, 9.99);  // < 1/dt (PlanFollower checks it against the world's dt)
     o.take_turns = a.integer("--take-turns", o.take_turns ? 1 : 0, 0, 1) != 0;
     o.one_lane_width = a.real("--one-lane-width", o.one_lane_width, 0, 100);
     o.go_around = a.integer("--go-around", o.go_around ? 1 : 0, 0, 1) != 0;
@@ -74,6 +76,7 @@ inline madbp::PolicyFactory planner_factory(std::shared_ptr<const madbp::MadbpMo
     fc.replan_every = s.replan;
     fc.priority_weight = o.priority_weight;
     fc.lookahead = o.lookahead;
+    fc.filter.rate = o.filter_rate;
     return [model, fc, o](const madbp::World&, uint64_t seed) -> std::unique_ptr<madbp::Policy> {
         auto planner = std::make_shared<madbp::DiffusionPlanner>(model->clone(), seed);
         if (o.sample_steps > 0) planner->sampler.sample_steps = o.sample_steps;
@@ -124,6 +127,8 @@ inline void register_nn_methods(std::vector<Method>& m) {
                  "                    --priority-weight W (safety-filter weight of the robot that goes first, as the\n"
                  "                    expert's; default 4; 1 = all equal), --lookahead L (the tracker aims L steps\n"
                  "                    ahead of the plan's waypoint for now; default 1.5, 0 = SPEC 8's),\n"
+                 "                    --filter-rate R (the safety filter's barrier rate, 1/s, below 1/dt; default 4,\n"
+                 "                    2.5 = SPEC 3.2's and the expert's),\n"
                  "                    --take-turns 0|1 (robots meeting head-on in a one-lane corridor take turns,\n"
                  "                    one waiting beside its mouth; default 1), --go-around 0|1 (where the corridor\n"
                  "                    has a way around at most 1.0 longer, the one that would wait goes around it;\n"

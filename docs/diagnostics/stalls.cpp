@@ -29,7 +29,7 @@ int main(int argc, char** argv) {
         PlanFollower weights([](const World& ww) { return LinePlanner{}(ww); });  // only its filter_weights
         while (!w.done()) {
             const std::vector<Vec2> u0 = f.act(w);
-            const std::vector<Vec2> u = safety_filter(w, u0, SafetyFilterParams{}, weights.filter_weights(w));
+            const std::vector<Vec2> u = safety_filter(w, u0, follower_filter(), weights.filter_weights(w));
             for (int i = 0; i < w.size(); ++i) {
                 const Agent& a = w.agents()[i];
                 if (w.at_goal(a)) continue;
