@@ -28,7 +28,8 @@
 //        at one with a short way around, the robot that would wait goes around it
 //        (PassageParams::go_around; RouteGuide routes that keep out of ClosedCells).
 //        RouteGuide::route_cells, RouteGuide::grid(map). PlanFollower's filter is follower_filter()
-//        (barrier rate 4/s; the expert and SafetyFilterParams{} keep 2.5).
+//        (barrier rate 4/s; the expert and SafetyFilterParams{} keep 2.5); safety_filter refuses a
+//        rate outside (0, 1/dt), where its barrier would not hold.
 //   0.1  world, maps, controllers.
 
 #ifndef MADBP_SIM_HPP
@@ -166,6 +167,7 @@ inline std::string number_text(double v) {
 #include <queue>
 #include <sstream>
 #include <sys/stat.h>
+#include <utility>
 #include <vector>
 
 namespace madbp {
@@ -1338,6 +1340,10 @@ inline std::vector<Vec2> safety_filter(const World& world, const std::vector<Vec
     const int n = (int)ag.size();
     MADBP_ASSERT((int)nominal.size() == n);
     MADBP_ASSERT(weights.empty() || (int)weights.size() == n);
+    // At rate x dt >= 1 one step could close a whole gap: the barrier no longer holds.
+    if (!(prm.rate > 0) || !(prm.rate * world.config().dt < 1))
+        throw std::invalid_argument("filter.rate: must be in (0, 1/dt = " + std::to_string(1 / world.config().dt) + ") per second (got " +
+                                    std::to_string(prm.rate) + ")");
     StepModel m(world.config());
     const double r = world.config().radius, lim = world.config().max_action;
     std::vector<detail::TeamConstraint> cons;
@@ -1498,16 +1504,14 @@ public:
             throw std::invalid_argument("priority_weight: must be finite and >= 1 (got " + std::to_string(cfg_.priority_weight) + ")");
         if (!(cfg_.lookahead >= 0) || !(cfg_.lookahead <= kMaxLookahead))
             throw std::invalid_argument("lookahead: must be in [0, " + std::to_string(kMaxLookahead) + "] steps (got " + std::to_string(cfg_.lookahead) + ")");
+        // Here what needs no world; the rate's bound 1/dt is the world's, and safety_filter checks it.
         if (!(cfg_.filter.rate > 0) || !std::isfinite(cfg_.filter.rate))
             throw std::invalid_argument("filter.rate: must be finite and > 0 (got " + std::to_string(cfg_.filter.rate) + ")");
-        if (!(cfg_.filter.margin >= 0) || !(cfg_.filter.static_margin >= 0) || !(cfg_.filter.range >= 0))
-            throw std::invalid_argument("filter: margin, static_margin and range must be >= 0");
+        for (auto [field, v] : {std::pair<const char*, double>{"filter.margin", cfg_.filter.margin},
+                                {"filter.static_margin", cfg_.filter.static_margin}, {"filter.range", cfg_.filter.range}})
+            if (!(v >= 0)) throw std::invalid_argument(std::string(field) + ": must be >= 0 (got " + std::to_string(v) + ")");
     }
     std::vector<Vec2> act(const World& world) override {
-        // At rate x dt >= 1 one step could close a whole gap: the barrier no longer holds.
-        if (cfg_.safety_filter && !(cfg_.filter.rate * world.config().dt < 1))
-            throw std::invalid_argument("filter.rate: must be < 1/dt = " + std::to_string(1 / world.config().dt) + " per second (got " +
-                                        std::to_string(cfg_.filter.rate) + ")");
         if (needs_plan(world)) {
             auto t0 = std::chrono::steady_clock::now();
             Plan p = planner_(world);

@@ -320,7 +320,7 @@ TEST_CASE("PlanFollower: lookahead aims between later waypoints; in steady track
 TEST_CASE("PlanFollower: its filter's faster barrier lets robots close in sooner, never overlap; bad rates are refused") {
     CHECK(FollowerConfig{}.filter.rate == 4);
     CHECK(SafetyFilterParams{}.rate == 2.5);  // SPEC 3.2's, the expert's and the straight line's
-    // Two robots head-on at top speed, a step off the centre line so that they can slide past.
+    // Two robots head-on at top speed, 0.02 apart sideways so that they can slide past.
     auto head_on = [](double rate, double& closest) {
         World w;
         w.add_agent({-0.8, 0.01}, {0.8, 0.01});
