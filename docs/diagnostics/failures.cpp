@@ -2,7 +2,7 @@
 // episode that times out, every robot not at its goal, how far it is from its goal and from the
 // nearest other robot. The shipped model and planner defaults, seeds 1000.. as `madbp eval`.
 //   g++ -std=c++17 -O2 -I. -isystem /usr/include/eigen3 docs/diagnostics/failures.cpp -o build/failures
-//   build/failures MAP SCENARIO|- N EPISODES   (e.g. build/failures empty corridor 4 40)
+//   build/failures MAP SCENARIO|- N EPISODES [LOOKAHEAD]   (e.g. build/failures empty corridor 4 40)
 #include <cstdio>
 #include <cstdlib>
 
@@ -10,7 +10,7 @@
 using namespace madbp;
 
 int main(int argc, char** argv) {
-    if (argc < 5) { std::fprintf(stderr, "usage: failures MAP SCENARIO|- N EPISODES\n"); return 2; }
+    if (argc < 5) { std::fprintf(stderr, "usage: failures MAP SCENARIO|- N EPISODES [LOOKAHEAD]\n"); return 2; }
     const std::string map = argv[1], scenario = argv[2];
     const int n = std::atoi(argv[3]), episodes = std::atoi(argv[4]);
     set_num_threads(1);
@@ -20,7 +20,9 @@ int main(int argc, char** argv) {
         const uint64_t seed = 1000 + e;
         World w = scenario == "-" ? make_random_world(map, n, seed) : make_interaction_world(scenario, map, n, seed);
         DiffusionPlanner planner(base.clone(), seed);
-        PlanFollower follower([&](const World& ww) { return planner.plan(ww); });
+        FollowerConfig fc;
+        if (argc > 5) fc.lookahead = std::atof(argv[5]);
+        PlanFollower follower([&](const World& ww) { return planner.plan(ww); }, fc);
         if (run_episode(w, follower).success) continue;
         failures++;
         std::printf("seed %llu:", (unsigned long long)seed);

@@ -2,7 +2,8 @@
 // robot's position and where its new plan puts it 8 steps later (docs/experiments.md, "Keep
 // right"). Shows whether a stalled pair's plans stand still or run through each other.
 //   g++ -std=c++17 -O2 -I. -isystem /usr/include/eigen3 docs/diagnostics/standoff_trace.cpp -o build/standoff_trace
-//   build/standoff_trace MAP SCENARIO N SEED [KEEP_RIGHT [TAKE_TURNS]]   (e.g. build/standoff_trace empty corridor 4 1001 0)
+//   build/standoff_trace MAP SCENARIO|- N SEED [KEEP_RIGHT [TAKE_TURNS [LOOKAHEAD]]]   (e.g. build/standoff_trace empty corridor 4 1001 0)
+// SCENARIO - is a random-spawn episode (as eval without --scenario); LOOKAHEAD sets the follower's.
 // A robot told to wait for a one-lane passage (DiffusionPlanner::take_turns) is marked "waits at
 // (x, y)", one told to go around a corridor "goes around".
 #include <cstdio>
@@ -12,16 +13,18 @@
 using namespace madbp;
 
 int main(int argc, char** argv) {
-    if (argc < 5) { std::fprintf(stderr, "usage: standoff_trace MAP SCENARIO N SEED [KEEP_RIGHT [TAKE_TURNS]]\n"); return 2; }
+    if (argc < 5) { std::fprintf(stderr, "usage: standoff_trace MAP SCENARIO|- N SEED [KEEP_RIGHT [TAKE_TURNS [LOOKAHEAD]]]\n"); return 2; }
     const std::string map = argv[1], scenario = argv[2];
     const int n = std::atoi(argv[3]);
     const uint64_t seed = std::strtoull(argv[4], nullptr, 10);
     set_num_threads(1);
-    World w = make_interaction_world(scenario, map, n, seed);
+    World w = scenario == "-" ? make_random_world(map, n, seed) : make_interaction_world(scenario, map, n, seed);
     DiffusionPlanner planner(load_model("models/madbp-default.safetensors"), seed);  // as eval: the episode's seed
     if (argc > 5) planner.sampler.keep_right = (float)std::atof(argv[5]);
     if (argc > 6) planner.take_turns = std::atoi(argv[6]) != 0;
-    PlanFollower follower([&](const World& ww) { return planner.plan(ww); });
+    FollowerConfig fc;
+    if (argc > 7) fc.lookahead = std::atof(argv[7]);
+    PlanFollower follower([&](const World& ww) { return planner.plan(ww); }, fc);
     for (const Box& b : w.map().boxes) std::printf("wall (%.2f, %.2f) - (%.2f, %.2f)\n", b.lo.x, b.lo.y, b.hi.x, b.hi.y);
     int passage_cells = 0;
     RouteGuide guide;
