@@ -234,6 +234,40 @@ TEST_CASE("PlanFollower: replans every m steps and on joins and leaves; bad plan
     CHECK_THROWS_AS(PlanFollower(LinePlanner{}, zero), std::invalid_argument);
 }
 
+TEST_CASE("PlanFollower: replans early when a robot is farther than replan_error from its plan's waypoint for now") {
+    CHECK(FollowerConfig{}.replan_error == 0.15);
+    // Plans that put every waypoint 0.5 to the side of where each robot is when planned: no robot
+    // can be there after one step (it moves <= 0.036 a step), so each is 0.46+ off its plan.
+    auto count_plans = [](double replan_error, bool reachable) {
+        World w = make_random_world("empty", 2, 3);
+        int calls = 0;
+        FollowerConfig fc;
+        fc.replan_every = 8;
+        fc.replan_error = replan_error;
+        PlanFollower f(
+            [&](const World& wd) {
+                calls++;
+                Plan p = LinePlanner{}(wd);
+                if (!reachable)
+                    for (size_t i = 0; i < p.ids.size(); ++i)
+                        for (Vec2& q : p.waypoints[i]) q = wd.agents()[i].pos + Vec2{0, 0.5};
+                return p;
+            },
+            fc);
+        for (int t = 0; t < 10; ++t) w.step(f.act(w));
+        return calls;
+    };
+    CHECK(count_plans(0, false) == 2);     // steps 0 and 8 only
+    CHECK(count_plans(0.15, false) == 3);  // off the plan at every step: a plan every 4 steps (half of m), 0, 4, 8
+    CHECK(count_plans(0.5, false) == 2);   // 0.46-0.5 off: within the bound, no early plan
+    CHECK(count_plans(0.15, true) == 2);   // a plan it can follow: every m steps, as with 0
+    for (double bad : {-0.1, (double)NAN}) {
+        FollowerConfig fc;
+        fc.replan_error = bad;
+        CHECK_THROWS_WITH_AS(PlanFollower(LinePlanner{}, fc), doctest::Contains("replan_error"), std::invalid_argument);
+    }
+}
+
 TEST_CASE("PlanFollower: filter priorities break a symmetric standoff as the expert's do") {
     // Two robots nose to nose in the open, each driving at the other: with equal weights the
     // filter bends both actions alike; with priority_weight the one that goes first (farther

@@ -78,7 +78,8 @@ inline std::vector<Method> methods() {
                      fc.replan_every = s.replan;
                      fc.priority_weight = 1;  // the SPEC 3.5 baseline as measured throughout: equal weights,
                      fc.lookahead = a.real("--lookahead", 0, 0, madbp::kMaxLookahead);  // the waypoint planned for this step
-                     fc.filter = madbp::SafetyFilterParams{};  // and SPEC 3.2's filter rate, 2.5/s
+                     fc.filter = madbp::SafetyFilterParams{};  // SPEC 3.2's filter rate, 2.5/s,
+                     fc.replan_error = 0;                      // and a new line every m steps only
                      return MethodSpec{[fc](const madbp::World&, uint64_t) {
                          return std::make_unique<madbp::PlanFollower>(madbp::LinePlanner{}, fc);
                      }};

@@ -29,6 +29,7 @@ struct PlannerOptions {
     bool take_turns = true;    // DiffusionPlanner::take_turns (one-lane passages)
     double one_lane_width = madbp::PassageParams{}.one_lane_width;
     bool go_around = madbp::PassageParams{}.go_around;  // PassageParams::go_around
+    double replan_error = madbp::FollowerConfig{}.replan_error;  // 0: replan only every m steps
 };
 // "A,M,G": the agent, map and goal weights of the window cost.
 inline void read_cost_weights(const std::string& s, madbp::WindowCost& w) {
@@ -63,6 +64,7 @@ inline PlannerOptions read_planner_options(Args& a) {
     o.take_turns = a.integer("--take-turns", o.take_turns ? 1 : 0, 0, 1) != 0;
     o.one_lane_width = a.real("--one-lane-width", o.one_lane_width, 0, 100);
     o.go_around = a.integer("--go-around", o.go_around ? 1 : 0, 0, 1) != 0;
+    o.replan_error = a.real("--replan-error", o.replan_error, 0, 100);
     return o;
 }
 
@@ -77,6 +79,7 @@ inline madbp::PolicyFactory planner_factory(std::shared_ptr<const madbp::MadbpMo
     fc.priority_weight = o.priority_weight;
     fc.lookahead = o.lookahead;
     fc.filter.rate = o.filter_rate;
+    fc.replan_error = o.replan_error;
     return [model, fc, o](const madbp::World&, uint64_t seed) -> std::unique_ptr<madbp::Policy> {
         auto planner = std::make_shared<madbp::DiffusionPlanner>(model->clone(), seed);
         if (o.sample_steps > 0) planner->sampler.sample_steps = o.sample_steps;
@@ -128,7 +131,8 @@ inline void register_nn_methods(std::vector<Method>& m) {
                  "                    expert's; default 4; 1 = all equal), --lookahead L (the tracker aims L steps\n"
                  "                    ahead of the plan's waypoint for now; default 1.5, 0 = SPEC 8's),\n"
                  "                    --filter-rate R (the safety filter's barrier rate, 1/s, below 1/dt; default 4,\n"
-                 "                    2.5 = SPEC 3.2's and the expert's),\n"
+                 "                    2.5 = SPEC 3.2's and the expert's), --replan-error E (replan early when a robot\n"
+                 "                    is more than E from its plan's waypoint for now; default 0.15, 0 = only every m steps),\n"
                  "                    --take-turns 0|1 (robots meeting head-on in a one-lane corridor take turns,\n"
                  "                    one waiting beside its mouth; default 1), --go-around 0|1 (where the corridor\n"
                  "                    has a way around at most 1.0 longer, the one that would wait goes around it;\n"
