@@ -1501,8 +1501,8 @@ struct FollowerConfig {
     // farther than this from the waypoint its plan has for now, world units, >= 0 (0: only every
     // replan_every steps). The guided expert does the same (ExpertParams::replan_error). A robot
     // the filter held back, or one that squeezed past another, has left the window it was given;
-    // planning again from where it is raised barrier 6 from .96 to .97 on the tuning seeds at no measurable cost
-    // (docs/experiments.md, "Replanning off the plan").
+    // planning again from where it is raised barrier 6 from .96 to .97 on the tuning seeds at no
+    // measurable cost (docs/experiments.md, "Replanning off the plan").
     double replan_error = 0.15;
 };
 class PlanFollower : public Policy {
