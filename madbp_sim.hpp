@@ -151,7 +151,7 @@ inline std::string number_text(double v) {
 //   7 controllers: Policy, StepModel                                             [3]
 //   8 CLF-QP: ClfQpParams, clf_qp_solve, clf_qp_action, ClfQp                    [3.1]
 //   9 tracker and safety filter: track_waypoint, track_plan, safety_filter       [3.2]
-//  10 plans: Plan, Planner, validate_plan, LinePlanner, PlanFollower             [3.2, 3.5, 8]
+//  10 plans: Plan, Planner, validate_plan, waypoint_now, LinePlanner, PlanFollower [3.2, 3.5, 8]
 //  11 episodes and evaluation: EpisodeLog, run_episode, evaluate                 [9, 10]
 //  12 guided expert: ClearanceGrid, wavefront, ClosedCells, RouteGoal, RouteGuide (route subgoals),
 //     PassageParams, PassageControl (one-lane passages), ExpertParams, GuidedExpert  [3.6]
@@ -1395,6 +1395,10 @@ struct Plan {
 // Any planner: a function from the current world to a plan for all its present agents.
 using Planner = std::function<Plan(const World&)>;
 
+// Where a plan made k >= 1 steps ago puts its agent now: waypoints[k - 1], or the last waypoint
+// once the plan has run out (non-empty waypoints). Followers replan when a robot is far from it.
+inline Vec2 waypoint_now(const std::vector<Vec2>& waypoints, int k) { return waypoints[std::min(k, (int)waypoints.size()) - 1]; }
+
 // Throws std::invalid_argument unless `plan` covers exactly the present agents of `world`,
 // once each, with at least one finite waypoint each.
 inline void validate_plan(const Plan& plan, const World& world) {
@@ -1572,19 +1576,19 @@ private:
     bool needs_plan(const World& world) const {
         if (plans_ == 0 || world.t() < plan_t0_ || world.t() - plan_t0_ >= cfg_.replan_every) return true;
         if ((int)plan_.ids.size() != world.size()) return true;
-        for (int id : plan_.ids) if (world.index_of(id) < 0) return true;
+        const int k = world.t() - plan_t0_;
+        // Early (replan_error), but not before half the interval: a planner whose windows cannot
+        // be followed costs at most twice the plans, not one every step.
+        const bool early = cfg_.replan_error > 0 && k >= (cfg_.replan_every + 1) / 2;
         int longest = 0;
-        for (const auto& w : plan_.waypoints) longest = std::max(longest, (int)w.size());
-        if (world.t() - plan_t0_ >= longest) return true;
-        // Early, but not before half the interval: a planner whose windows cannot be followed
-        // costs at most twice the plans, not one every step.
-        if (cfg_.replan_error > 0 && world.t() - plan_t0_ >= (cfg_.replan_every + 1) / 2)
-            for (size_t i = 0; i < plan_.ids.size(); ++i) {  // the waypoint for now: step t0 + k is waypoints[k - 1]
-                const std::vector<Vec2>& w = plan_.waypoints[i];
-                const Vec2 now = w[std::min(world.t() - plan_t0_, (int)w.size()) - 1];
-                if (norm(world.agents()[world.index_of(plan_.ids[i])].pos - now) > cfg_.replan_error) return true;
-            }
-        return false;
+        for (size_t i = 0; i < plan_.ids.size(); ++i) {
+            const int j = world.index_of(plan_.ids[i]);
+            if (j < 0) return true;
+            const std::vector<Vec2>& w = plan_.waypoints[i];
+            longest = std::max(longest, (int)w.size());
+            if (early && norm(world.agents()[j].pos - waypoint_now(w, k)) > cfg_.replan_error) return true;
+        }
+        return k >= longest;
     }
 };
 
@@ -2325,8 +2329,8 @@ private:
             int pi = plan_index(a.id);
             if (pi < 0) return true;
             const auto& w = plan_.waypoints[pi];
-            // Position now vs the waypoint planned for now (k steps in; the start when k = 0).
-            if (k >= 1 && norm(a.pos - w[std::min(k - 1, (int)w.size() - 1)]) > prm_.replan_error) return true;
+            // Position now vs the waypoint planned for now (none yet when k = 0).
+            if (k >= 1 && norm(a.pos - waypoint_now(w, k)) > prm_.replan_error) return true;
         }
         return false;
     }
