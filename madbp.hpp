@@ -70,7 +70,7 @@
 //     TrajectoryProcessor                                                              [5]
 //   5 the model: MadbpModel, save_model, load_model                                      [5, 11]
 //   6 diffusion: NoiseSchedule, SamplerConfig, sample_windows (DDIM with inpainting,
-//     guidance, best-of-k, keep-right, end bend)                                        [6]
+//     guidance, best-of-k, keep-right, end bend, warm start)                            [6]
 //   7 planner: DiffusionPlanner (plan, neighbourhoods, take_turns, plan_robot)           [8]
 //
 // Changelog
@@ -89,7 +89,9 @@
 //        one that goes around a corridor with a short way around its detour's route subgoal
 //        (route_goal takes ClosedCells). last_waiting, last_wait_points. SamplerConfig::end_bend:
 //        a window that heads for a goal within reach but stops short is bent to arrive; the
-//        planner samples with kDefaultEndBend.
+//        planner samples with kDefaultEndBend. SamplerConfig::warm_start: a plan runs the last W
+//        DDIM steps from each robot's last window shifted to now (sample_windows' `warm`), and
+//        the planner keeps its last windows by id; it samples with kDefaultWarmStart.
 //   0.1  neural-network core, safetensors checkpoints, MA-DBP model, DDIM sampler, planner.
 
 #ifndef MADBP_HPP
@@ -2722,6 +2724,10 @@ constexpr float kDefaultKeepRight = 300.f;
 // The end bend DiffusionPlanner samples with (SamplerConfig::end_bend; the bare sampler's default
 // is 0): tuned on seeds 1000-1299 (docs/experiments.md, "Windows that arrive").
 constexpr float kDefaultEndBend = 1.f;
+// The warm start DiffusionPlanner samples with (SamplerConfig::warm_start, DDIM steps from each
+// robot's last window; the bare sampler's default is 0): tuned on seeds 1000-1299
+// (docs/experiments.md, "Warm-started windows").
+constexpr int kDefaultWarmStart = 5;
 
 // The map's clearance (static_clearance: distance to the nearest obstacle or wall surface,
 // world units, negative inside) sampled at the nodes of a square grid of spacing `cell` over the
@@ -3028,6 +3034,12 @@ struct SamplerConfig {
     // and jumping to the goal at its last waypoint. A window that leaves its goal (a robot making
     // way) is kept. 0 = off (DiffusionPlanner samples with kDefaultEndBend).
     float end_bend = 0;
+    // In [0, S]: given warm windows (sample_windows' `warm`: DiffusionPlanner passes each robot's
+    // last window, shifted to now), DDIM runs only its last warm_start steps, starting from the
+    // warm windows noised to that step's level (SDEdit) instead of from pure noise: a robot keeps
+    // the way it chose (which side, who goes first) unless the model pulls it off, and a plan
+    // costs warm_start / S of the network evaluations. 0, or S and more (every step) = off.
+    int warm_start = 0;
     bool conflict_aware() const { return guidance != 0 || candidates != 1; }
     // Throws std::invalid_argument naming the first field out of range; K: the model's diffusion
     // steps. sample_windows calls it, whichever path the options take.
@@ -3042,6 +3054,7 @@ struct SamplerConfig {
         if (candidates < 1 || candidates > kMaxCandidates) bad("candidates", "in [1, kMaxCandidates = " + std::to_string(kMaxCandidates) + "]", candidates);
         if (!(keep_right >= 0) || !std::isfinite(keep_right)) bad("keep_right", "a finite number >= 0", keep_right);
         if (!(end_bend >= 0 && end_bend <= 1)) bad("end_bend", "in [0, 1]", end_bend);
+        if (warm_start < 0) bad("warm_start", ">= 0", warm_start);
         const std::pair<const char*, float> weights[] = {{"cost.radius", cost.radius},           {"cost.agent_margin", cost.agent_margin},
                                                          {"cost.map_margin", cost.map_margin},   {"cost.agent_weight", cost.agent_weight},
                                                          {"cost.map_weight", cost.map_weight},   {"cost.goal_weight", cost.goal_weight}};
@@ -3097,6 +3110,41 @@ inline void draw_noise(const SceneBatch& batch, int H, Rng& rng, Mat& x) {
     }
 }
 
+// The first DDIM step s of a draw: S from pure noise x, or with `warm` (2, H*B*n) and
+// sc.warm_start > 0, warm_start from x = sqrt(ab) warm + sqrt(1 - ab) x at that step's level,
+// each of the k candidates of scene b (x's scene b*k + j) from scene b's warm window.
+inline int warm_from(const NoiseSchedule& schedule, const SamplerConfig& sc, const Mat* warm, long scene_cols, int k, Mat& x) {
+    if (!warm || sc.warm_start <= 0 || sc.warm_start >= sc.sample_steps) return sc.sample_steps;
+    if (warm->rows() != 2 || warm->cols() * k != x.cols()) throw std::invalid_argument("sampler: warm windows must be 2 x " + std::to_string(x.cols() / k) + " (2, H * agents), got " +
+                                    std::to_string(warm->rows()) + " x " + std::to_string(warm->cols()));
+    const double ab = schedule.alpha_bar[schedule.ddim_step(sc.warm_start, sc.sample_steps)];
+    const float sa = (float)std::sqrt(ab), s1a = (float)std::sqrt(1 - ab);
+    const long B = warm->cols() / scene_cols;
+    for (long b = 0; b < B; ++b)
+        for (int j = 0; j < k; ++j) {
+            auto xs = x.middleCols((b * k + j) * scene_cols, scene_cols);
+            xs = sa * warm->middleCols(b * scene_cols, scene_cols) + s1a * xs;
+        }
+    return sc.warm_start;
+}
+
+// The warm window (SamplerConfig::warm_start) of a robot at `pos` from its last window, made
+// `elapsed` world steps ago (world waypoints for the steps 1, 2, ... after it was made): x's
+// columns col .. col + H - 1 get, as normalised displacements from `pos`, 0 and then the last
+// window's waypoints for the steps elapsed + t * stride, holding its last waypoint past its end.
+// False, x untouched, when there is no such window (elapsed outside [1, its length - 1]).
+inline bool warm_window(const std::vector<Vec2>& last, long elapsed, Vec2 pos, const ModelConfig& c, Mat& x, long col) {
+    if (elapsed < 1 || elapsed >= (long)last.size()) return false;
+    const int H = c.horizon;
+    x.middleCols(col, H).setZero();
+    for (int t = 1; t < H; ++t) {
+        const Vec2 d = last[(size_t)std::min(elapsed + (long)t * c.waypoint_stride, (long)last.size()) - 1] - pos;
+        x(0, col + t) = (float)(d.x / c.window_scale);
+        x(1, col + t) = (float)(d.y / c.window_scale);
+    }
+    return true;
+}
+
 // sample_windows with SamplerConfig::guidance and candidates: the batch's scenes repeated k
 // times (repeat_scenes) and denoised together; at every DDIM step the clipped x0_hat takes one
 // gradient step on its WindowCost (scaled so that a waypoint moves -W * d cost / d waypoint
@@ -3104,7 +3152,7 @@ inline void draw_noise(const SceneBatch& batch, int H, Rng& rng, Mat& x) {
 // sampling. Then each scene keeps its lowest-cost candidate: x (2, H*A) of `batch`.
 template <class Denoiser>
 void sample_conflict_aware(Denoiser& model, const NoiseSchedule& schedule, const SceneBatch& batch, const SamplerConfig& sc, Rng& rng,
-                           Mat& x_best, ConflictWorkspace& cw) {
+                           Mat& x_best, ConflictWorkspace& cw, const Mat* warm) {
     const ModelConfig& c = model.config;
     const int H = c.horizon, B = batch.B, n = batch.n, S = sc.sample_steps, k = sc.candidates;
     const WindowCost& wc = sc.cost;
@@ -3115,11 +3163,12 @@ void sample_conflict_aware(Denoiser& model, const NoiseSchedule& schedule, const
     model.encode_context(rb);
     Mat& x = cw.x;
     draw_noise(rb, H, rng, x);
+    const int s_top = warm_from(schedule, sc, warm, (long)n * H, k, x);
     impose_pins(rb, c, sc, x);
     cw.steps.resize(Bk);
     // d x0 = -W / window_scale^2 * d cost / d x0 moves a waypoint by -W * d cost / d P (world units).
     const float step_size = (float)(sc.guidance / ((double)c.window_scale * c.window_scale));
-    for (int s = S; s >= 1; --s) {
+    for (int s = s_top; s >= 1; --s) {
         const int kd = schedule.ddim_step(s, S), k_prev = schedule.ddim_step(s - 1, S);
         std::fill(cw.steps.begin(), cw.steps.end(), kd);
         model.denoise(x, cw.steps.data(), cw.out);
@@ -3165,12 +3214,12 @@ void sample_conflict_aware(Denoiser& model, const NoiseSchedule& schedule, const
 // batch share that map, as the planner's do. `out` is then untouched.
 template <class Denoiser>
 void sample_windows(Denoiser& model, const NoiseSchedule& schedule, const SceneBatch& batch, const SamplerConfig& sc,
-                    Rng& rng, Mat& x, Mat& out, std::vector<int>& step_buf, ConflictWorkspace* cw = nullptr) {
+                    Rng& rng, Mat& x, Mat& out, std::vector<int>& step_buf, ConflictWorkspace* cw = nullptr, const Mat* warm = nullptr) {
     sc.validate(schedule.K);
     if (sc.conflict_aware()) {
         if (!cw || cw->fields.clearance.nodes == 0)
             throw std::invalid_argument("sampler: guidance and candidates need a ConflictWorkspace holding the map's distance field (set_map)");
-        detail::sample_conflict_aware(model, schedule, batch, sc, rng, x, *cw);
+        detail::sample_conflict_aware(model, schedule, batch, sc, rng, x, *cw, warm);
         detail::bend_to_pinned_ends(batch, model.config, sc, x);
         return;
     }
@@ -3178,9 +3227,10 @@ void sample_windows(Denoiser& model, const NoiseSchedule& schedule, const SceneB
     const int H = c.horizon, B = batch.B, S = sc.sample_steps;
     model.encode_context(batch);
     detail::draw_noise(batch, H, rng, x);
+    const int s_top = detail::warm_from(schedule, sc, warm, (long)batch.n * H, 1, x);
     detail::impose_pins(batch, c, sc, x);
     step_buf.resize(B);
-    for (int s = S; s >= 1; --s) {
+    for (int s = s_top; s >= 1; --s) {
         const int k = schedule.ddim_step(s, S), k_prev = schedule.ddim_step(s - 1, S);
         std::fill(step_buf.begin(), step_buf.end(), k);
         model.denoise(x, step_buf.data(), out);
@@ -3244,6 +3294,7 @@ public:
         sampler.guidance = kDefaultGuidance;
         sampler.keep_right = kDefaultKeepRight;
         sampler.end_bend = kDefaultEndBend;
+        sampler.warm_start = kDefaultWarmStart;
     }
     const ModelConfig& config() const { return model_.config; }
     MadbpModel& model() { return model_; }
@@ -3305,11 +3356,16 @@ public:
             pos_[i] = a.pos, goal_[i] = a.goal, vel_[i] = a.vel, ids_[i] = a.id, at_goal_[i] = world.at_goal(a);
         }
         priority_keys(world.map(), n);
+        now_ = world.t();
         plan_scenes(world.map(), n, local ? n : 1, K, local);
         for (int i = 0; i < n; ++i) {
             out.ids[i] = ids_[i];
             decode_window(local ? (long)i * K : i, pos_[i], out.waypoints[i]);  // agent i: first of scene i, or column i
         }
+        last_ids_.assign(ids_.begin(), ids_.end());  // what the next plan starts from (warm_start)
+        last_windows_.resize(n);
+        for (int i = 0; i < n; ++i) last_windows_[i] = out.waypoints[i];
+        last_t_ = now_;
         out.plan_ms = std::chrono::duration<double, std::milli>(std::chrono::steady_clock::now() - t0).count();
     }
 
@@ -3340,6 +3396,7 @@ public:
             pos_[i] = others[i - 1].pos, goal_[i] = others[i - 1].goal, vel_[i] = others[i - 1].vel, ids_[i] = others[i - 1].id;
         for (int i = 0; i < n; ++i) at_goal_[i] = WorldConfig{}.reached(pos_[i], goal_[i]);
         priority_keys(map, n);
+        now_ = -1;
         plan_scenes(map, n, 1, std::min(K, n), /*local*/ true);
         decode_window(0, pos, window);
     }
@@ -3364,6 +3421,13 @@ private:
     std::vector<Vec2> wait_point_;
     RouteGuide guide_;               // route subgoals (ModelConfig::subgoal_distance)
     ConflictWorkspace conflict_;     // guidance and best-of-k (SamplerConfig::guidance, candidates)
+    // SamplerConfig::warm_start: the last plan's robots and windows, made at the world's step
+    // last_t_; now_, this plan's step (-1 in plan_robot: it draws cold).
+    std::vector<int> last_ids_;
+    std::vector<std::vector<Vec2>> last_windows_;
+    long last_t_ = -1, now_ = -1;
+    Mat warm_;      // (2, H * scenes * K) the warm windows
+    bool warm_ok_ = false;  // every robot planned has one
 
     // key_: each robot's route steps (RouteGuide::route_steps) from where this planner first saw
     // it; from where it is for a robot without an id.
@@ -3408,6 +3472,9 @@ private:
         const uint64_t plan_seed = local ? rng_.next_u64() : 0;
         if (local) batch_.noise_seed.resize(scenes);
         else batch_.noise_seed.clear();
+        // Warm only when every robot of every scene has a last window to start from.
+        warm_ok_ = sampler.warm_start > 0 && last_t_ >= 0 && now_ > last_t_;
+        if (warm_ok_) warm_.setZero(2, (long)c.horizon * scenes * K);
         for (int b = 0; b < scenes; ++b) {
             int m = n;
             members_.resize(n);
@@ -3436,13 +3503,23 @@ private:
                     continue;
                 }
                 const int i = members_[k];
+                if (warm_ok_) warm_ok_ = warm_from_last(i, a);
                 encode_agent(batch_, a, /*slot*/ k, pos_[i], route_[i].goal, map, c, route_[i].final, vel_[i],
                              c.priority_context ? priority_[k] : 1.0f);
             }
             batch_.count[b] = m;
         }
         if (sampler.conflict_aware()) conflict_.set_map(map);  // the distance field, once per map
-        sample_windows(model_, schedule_, batch_, sampler, rng_, x_, eps_, steps_, &conflict_);
+        sample_windows(model_, schedule_, batch_, sampler, rng_, x_, eps_, steps_, &conflict_, warm_ok_ ? &warm_ : nullptr);
+    }
+
+    // Agent a's columns of warm_ from robot i's last window (detail::warm_window); false without one.
+    bool warm_from_last(int i, int a) {
+        const int id = ids_[i];
+        if (id < 0) return false;
+        const size_t n = last_ids_.size();
+        const size_t j = (size_t)i < n && last_ids_[i] == id ? (size_t)i : std::find(last_ids_.begin(), last_ids_.end(), id) - last_ids_.begin();
+        return j < n && detail::warm_window(last_windows_[j], now_ - last_t_, pos_[i], model_.config, warm_, (long)a * model_.config.horizon);
     }
 
     // Column `col` of x_ as waypoints from p0 (world units), interpolated to every world step.

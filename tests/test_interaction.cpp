@@ -559,6 +559,7 @@ TEST_CASE("sampler: every option is checked on either path, and a bad one is nam
                        {"keep_right", [](SamplerConfig& o) { o.keep_right = -1; }},
                        {"end_bend", [](SamplerConfig& o) { o.end_bend = 1.5f; }},
                        {"end_bend", [&](SamplerConfig& o) { o.end_bend = nan; }},
+                       {"warm_start", [](SamplerConfig& o) { o.warm_start = -1; }},
                        {"cost.agent_margin", [](SamplerConfig& o) { o.cost.agent_margin = -0.1f; }},
                        {"cost.goal_weight", [](SamplerConfig& o) { o.cost.goal_weight = INFINITY; }}};
     for (bool guided : {false, true})
@@ -668,16 +669,19 @@ TEST_CASE("sampler: with keep-right a head-on pair passes each on its own right"
     CHECK(pushed >= 2);
 }
 
-TEST_CASE("planner: conflict-aware plans allocate nothing in the steady state") {
+TEST_CASE("planner: conflict-aware and warm-started plans allocate nothing in the steady state") {
     set_num_threads(1);
     ModelConfig c;  // the default configuration
     DiffusionPlanner planner(MadbpModel(c, 1), 3);
     planner.sampler.guidance = 0.01f;
     planner.sampler.candidates = 3;
-    World w = make_random_world("barrier", 4, 4);
+    World w = make_random_world("barrier", 4, 4), later = w;
+    for (int k = 0; k < 8; ++k) later.step(std::vector<Vec2>(4, Vec2{0.1, 0}));
     Plan plan;
-    for (int i = 0; i < 3; ++i) planner.plan_into(w, plan);  // warm-up: workspaces and the distance field
-    [[maybe_unused]] const long allocs = count_allocs([&] { for (int i = 0; i < 3; ++i) planner.plan_into(w, plan); });
+    // w and `later` in turn: a cold plan (the clock went back) and a warm one (SamplerConfig::warm_start).
+    auto both = [&] { planner.plan_into(w, plan); planner.plan_into(later, plan); };
+    for (int i = 0; i < 3; ++i) both();  // warm-up: workspaces and the distance field
+    [[maybe_unused]] const long allocs = count_allocs([&] { for (int i = 0; i < 3; ++i) both(); });
 #if MADBP_TEST_COUNT_ALLOCS
     CHECK(allocs == 0);
 #endif
@@ -891,4 +895,152 @@ TEST_CASE("sampler: the end bend makes a window that heads for its pinned goal a
         CHECK(bent.middleCols(0, H) != plain.middleCols(0, H));
         CHECK(bent(0, H - 2) == doctest::Approx(plain(0, H - 2)).epsilon(1e-5));
     }
+}
+
+// ---------------------------------------------------------------------------------------------
+// Warm start (SamplerConfig::warm_start)
+
+namespace {
+// Predicts zero noise (eps mode): each DDIM step then only rescales x by sqrt(ab_prev / ab), so a
+// draw ends at x_top / sqrt(ab_top), which shows exactly where it started and from what.
+struct ZeroNoiseDenoiser {
+    ModelConfig config;
+    void encode_context(const SceneBatch&) {}
+    void denoise(const Mat& x, const int*, Mat& out) { out.setZero(2, x.cols()); }
+};
+}  // namespace
+
+TEST_CASE("sampler: a warm start runs the last warm_start DDIM steps from the warm windows noised to that level") {
+    ModelConfig c = tiny_config();
+    c.prediction = Prediction::Eps;
+    ZeroNoiseDenoiser zero{c};
+    NoiseSchedule sched(c.diffusion_steps);
+    const WorldMap map = test_map();
+    Rng pose_rng(4);
+    const SceneBatch s = scene_batch(c, map, 2, 3, {3, 2}, pose_rng);  // agent 5 is an empty slot
+    const int H = c.horizon, S = 5, W = 2;
+    const long A = s.agents();
+    Mat warm(2, (long)H * A);
+    Rng warm_rng(8);
+    for (long j = 0; j < warm.size(); ++j) warm.data()[j] = (float)warm_rng.uniform(-0.5, 0.5);
+    ConflictWorkspace cw;
+    cw.set_map(map);
+    const double ab_top = sched.alpha_bar[sched.ddim_step(S, S)], ab_w = sched.alpha_bar[sched.ddim_step(W, S)];
+    for (int k : {1, 2}) {  // the plain path, and the conflict-aware one (every candidate from its scene's warm windows)
+        CAPTURE(k);
+        SamplerConfig sc;
+        sc.sample_steps = S;
+        sc.goal_inpaint = false;
+        sc.x0_clip = 1e6f;
+        sc.candidates = k;
+        Mat cold, warmed, ignored, out;
+        std::vector<int> buf;
+        Rng r1(7), r2(7), r3(7);
+        sample_windows(zero, sched, s, sc, r1, cold, out, buf, &cw, &warm);  // warm_start 0: the warm windows are ignored
+        const Mat cold_all = k > 1 ? cw.x : cold;
+        sc.warm_start = W;
+        sample_windows(zero, sched, s, sc, r2, warmed, out, buf, &cw, &warm);
+        const Mat warm_all = k > 1 ? cw.x : warmed;
+        sc.warm_start = S;  // all S steps: a cold draw, bit for bit
+        sample_windows(zero, sched, s, sc, r3, ignored, out, buf, &cw, &warm);
+        CHECK(ignored == cold);
+        // cold = noise / sqrt(ab_top); warm = warm + sqrt((1 - ab_w) / ab_w) noise, with the same noise.
+        for (int j = 0; j < k; ++j)
+            for (long a = 0; a < A; ++a)
+                for (int t = 0; t < H; ++t) {
+                    const long col = (long)(a / s.n * k + j) * s.n * H + (a % s.n) * H + t, wcol = a * H + t;
+                    for (int r = 0; r < 2; ++r) {
+                        const double noise = cold_all(r, col) * std::sqrt(ab_top);
+                        const double expect = s.agent_mask[a] == 0 || t == 0 ? 0.0 : warm(r, wcol) + std::sqrt((1 - ab_w) / ab_w) * noise;
+                        CHECK(warm_all(r, col) == doctest::Approx(expect).epsilon(1e-4).scale(1));
+                    }
+                }
+    }
+    SamplerConfig sc;
+    sc.sample_steps = S;
+    sc.warm_start = W;
+    Mat x, out, wrong = Mat::Zero(2, H);
+    std::vector<int> buf;
+    Rng rng(1);
+    CHECK_THROWS_WITH_AS(sample_windows(zero, sched, s, sc, rng, x, out, buf, &cw, &wrong), doctest::Contains("warm windows"), std::invalid_argument);
+}
+
+TEST_CASE("warm window: the last window from now on, as displacements from where the robot is, held past its end") {
+    for (int stride : {1, 2}) {
+        CAPTURE(stride);
+        ModelConfig c = tiny_config();
+        c.waypoint_stride = stride;
+        const int H = c.horizon, L = (H - 1) * stride;
+        std::vector<Vec2> last(L);
+        for (int k = 0; k < L; ++k) last[k] = {0.1 + 0.03 * (k + 1), -0.2 + 0.01 * (k + 1) * (k + 1)};  // waypoint for step k + 1
+        const Vec2 pos{0.2, -0.15};
+        Mat x = Mat::Constant(2, 3 * H, 9.f);
+        for (long elapsed : {1L, 3L, (long)L - 1}) {
+            CAPTURE(elapsed);
+            REQUIRE(detail::warm_window(last, elapsed, pos, c, x, H));
+            CHECK(x(0, H) == 0);
+            CHECK(x(1, H) == 0);
+            for (int t = 1; t < H; ++t) {
+                const Vec2 w = last[(size_t)std::min(elapsed + (long)t * stride, (long)L) - 1];
+                CHECK(x(0, H + t) == doctest::Approx((w.x - pos.x) / c.window_scale));
+                CHECK(x(1, H + t) == doctest::Approx((w.y - pos.y) / c.window_scale));
+            }
+            CHECK(x(0, 0) == 9.f);  // other robots' columns untouched
+            CHECK(x(0, 2 * H) == 9.f);
+        }
+        // Waypoint t = 1 after 3 steps is the one planned for step 3 + stride; past the end, the last.
+        detail::warm_window(last, 3, pos, c, x, 0);
+        CHECK(x(0, 1) == doctest::Approx((last[3 + stride - 1].x - pos.x) / c.window_scale));
+        CHECK(x(0, H - 1) == doctest::Approx((last[L - 1].x - pos.x) / c.window_scale));
+        // Nothing left for now, or no time passed: no warm window, x untouched.
+        const Mat before = x;
+        CHECK_FALSE(detail::warm_window(last, 0, pos, c, x, 0));
+        CHECK_FALSE(detail::warm_window(last, L, pos, c, x, 0));
+        CHECK_FALSE(detail::warm_window({}, 1, pos, c, x, 0));
+        CHECK(x == before);
+    }
+}
+
+TEST_CASE("planner: a warm start draws each robot's window from its last one shifted to now; a new episode draws cold") {
+    const ModelConfig c = tiny_config();
+    const int H = c.horizon, n = 3;
+    DiffusionPlanner warm(MadbpModel(c, 2), 11), cold(MadbpModel(c, 2), 11);
+    CHECK(warm.sampler.warm_start == kDefaultWarmStart);
+    cold.sampler.warm_start = 0;
+    for (DiffusionPlanner* p : {&warm, &cold}) p->sampler.guidance = 0, p->sampler.end_bend = 0;  // the plain path
+    warm.sampler.warm_start = 2;  // of the tiny model's 5 steps
+    // The same draws by hand: the reference sampler's rng and model.
+    MadbpModel copy(c, 2);
+    copy.set_training(false);
+    NoiseSchedule sched(c.diffusion_steps);
+    Rng rng(11);
+    Mat x, out, warm_x;
+    std::vector<int> buf;
+    auto expect_plan = [&](const World& w, const Plan& p) {
+        for (int i = 0; i < n; ++i)
+            for (int t = 1; t < H; ++t) {
+                const Vec2 q = w.agents()[i].pos + Vec2{x(0, (long)i * H + t) * (double)c.window_scale, x(1, (long)i * H + t) * (double)c.window_scale};
+                CHECK(p.waypoints[i][t - 1].x == doctest::Approx(q.x));
+                CHECK(p.waypoints[i][t - 1].y == doctest::Approx(q.y));
+            }
+    };
+    World world = make_random_world("obstacles", n, 3);
+    const Plan first = warm.plan(world), first_cold = cold.plan(world);  // no last window yet: both draw cold
+    CHECK(first.waypoints == first_cold.waypoints);
+    sample_windows(copy, sched, warm.last_scene_batch(), warm.sampler, rng, x, out, buf);
+    expect_plan(world, first);
+    for (int k = 0; k < 3; ++k) world.step(std::vector<Vec2>(n, Vec2{0.2, 0.1}));
+    const Plan second = warm.plan(world), second_cold = cold.plan(world);
+    warm_x.setZero(2, (long)H * n);
+    for (int i = 0; i < n; ++i) REQUIRE(detail::warm_window(first.waypoints[i], 3, world.agents()[i].pos, c, warm_x, (long)i * H));
+    sample_windows(copy, sched, warm.last_scene_batch(), warm.sampler, rng, x, out, buf, nullptr, &warm_x);
+    expect_plan(world, second);
+    CHECK(second.waypoints != second_cold.waypoints);
+    // A new episode (the world's clock went back): cold again.
+    World next = make_random_world("obstacles", n, 4);
+    const Plan third = warm.plan(next);
+    SamplerConfig no_warm = warm.sampler;
+    no_warm.warm_start = 0;
+    sample_windows(copy, sched, warm.last_scene_batch(), no_warm, rng, x, out, buf);
+    expect_plan(next, third);
 }

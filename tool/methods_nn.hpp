@@ -30,6 +30,7 @@ struct PlannerOptions {
     double one_lane_width = madbp::PassageParams{}.one_lane_width;
     bool go_around = madbp::PassageParams{}.go_around;  // PassageParams::go_around
     double replan_error = madbp::FollowerConfig{}.replan_error;  // 0: replan only every m steps
+    int warm_start = madbp::kDefaultWarmStart;  // SamplerConfig::warm_start (0: off)
 };
 // "A,M,G": the agent, map and goal weights of the window cost.
 inline void read_cost_weights(const std::string& s, madbp::WindowCost& w) {
@@ -65,6 +66,7 @@ inline PlannerOptions read_planner_options(Args& a) {
     o.one_lane_width = a.real("--one-lane-width", o.one_lane_width, 0, 100);
     o.go_around = a.integer("--go-around", o.go_around ? 1 : 0, 0, 1) != 0;
     o.replan_error = a.real("--replan-error", o.replan_error, 0, 100);
+    o.warm_start = (int)a.integer("--warm-start", o.warm_start, 0, 1000);
     return o;
 }
 
@@ -92,6 +94,7 @@ inline madbp::PolicyFactory planner_factory(std::shared_ptr<const madbp::MadbpMo
         planner->sampler.keep_right = (float)o.keep_right;
         planner->sampler.end_bend = (float)o.end_bend;
         planner->sampler.cost = o.cost;
+        planner->sampler.warm_start = o.warm_start;
         planner->take_turns = o.take_turns;
         planner->passages.params.one_lane_width = o.one_lane_width;
         planner->passages.params.go_around = o.go_around;
@@ -126,7 +129,9 @@ inline void register_nn_methods(std::vector<Method>& m) {
                  "                    --keep-right K (robots meeting in the guided windows are also pushed to the\n"
                  "                    right of their relative motion, so they pass; default 300, 0 = off),\n"
                  "                    --end-bend B (a window heading for a goal within reach is bent to arrive\n"
-                 "                    there, not stop short; in [0, 1], default 1, 0 = off),\n"
+                 "                    there, not stop short; in [0, 1], default 1, 0 = off), --warm-start W (a plan\n"
+                 "                    runs the last W of the S DDIM steps from each robot's last window, noised to\n"
+                 "                    that level, instead of all S from noise; default 5, 0 = off),\n"
                  "                    --priority-weight W (safety-filter weight of the robot that goes first, as the\n"
                  "                    expert's; default 4; 1 = all equal), --lookahead L (the tracker aims L steps\n"
                  "                    ahead of the plan's waypoint for now; default 1.5, 0 = SPEC 8's),\n"
