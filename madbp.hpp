@@ -3034,11 +3034,11 @@ struct SamplerConfig {
     // and jumping to the goal at its last waypoint. A window that leaves its goal (a robot making
     // way) is kept. 0 = off (DiffusionPlanner samples with kDefaultEndBend).
     float end_bend = 0;
-    // In [0, S]: given warm windows (sample_windows' `warm`: DiffusionPlanner passes each robot's
-    // last window, shifted to now), DDIM runs only its last warm_start steps, starting from the
+    // W >= 0: given warm windows (sample_windows' `warm`: DiffusionPlanner passes each robot's
+    // last window, shifted to now), DDIM runs only its last W steps, starting from the
     // warm windows noised to that step's level (SDEdit) instead of from pure noise: a robot keeps
     // the way it chose (which side, who goes first) unless the model pulls it off, and a plan
-    // costs warm_start / S of the network evaluations. 0, or S and more (every step) = off.
+    // costs W / S of the network evaluations. 0, or W >= S (every step) = off.
     int warm_start = 0;
     bool conflict_aware() const { return guidance != 0 || candidates != 1; }
     // Throws std::invalid_argument naming the first field out of range; K: the model's diffusion
