@@ -1007,7 +1007,10 @@ TEST_CASE("planner: a warm start draws each robot's window from its last one shi
     DiffusionPlanner warm(MadbpModel(c, 2), 11), cold(MadbpModel(c, 2), 11);
     CHECK(warm.sampler.warm_start == kDefaultWarmStart);
     cold.sampler.warm_start = 0;
-    for (DiffusionPlanner* p : {&warm, &cold}) p->sampler.guidance = 0, p->sampler.end_bend = 0;  // the plain path
+    for (DiffusionPlanner* p : {&warm, &cold}) {  // the plain path
+        p->sampler.guidance = 0;
+        p->sampler.end_bend = 0;
+    }
     warm.sampler.warm_start = 2;  // of the tiny model's 5 steps
     // The same draws by hand: the reference sampler's rng and model.
     MadbpModel copy(c, 2);
