@@ -3258,6 +3258,7 @@ void sample_windows(Denoiser& model, const NoiseSchedule& schedule, const SceneB
 //   madbp::DiffusionPlanner planner(madbp::load_model("models/madbp-default.safetensors"));
 //   madbp::PlanFollower follower([&](const madbp::World& w) { return planner.plan(w); });
 // A robot that plans for itself (decentralised) calls plan_robot with what it knows instead.
+// A planner remembers its last plan (SamplerConfig::warm_start): use one per world.
 class DiffusionPlanner {
 public:
     // Another robot as one robot knows it: position and goal as received from it.
@@ -3422,7 +3423,8 @@ private:
     RouteGuide guide_;               // route subgoals (ModelConfig::subgoal_distance)
     ConflictWorkspace conflict_;     // guidance and best-of-k (SamplerConfig::guidance, candidates)
     // SamplerConfig::warm_start: the last plan's robots and windows, made at the world's step
-    // last_t_; now_, this plan's step (-1 in plan_robot: it draws cold).
+    // last_t_; now_, this plan's step (-1 in plan_robot: it draws cold). One world per planner:
+    // a world whose clock went back draws cold, but two worlds planned in turn would mix.
     std::vector<int> last_ids_;
     std::vector<std::vector<Vec2>> last_windows_;
     long last_t_ = -1, now_ = -1;
