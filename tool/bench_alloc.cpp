@@ -2,7 +2,8 @@
 // A program of its own because it replaces malloc and operator new (tests/alloc_counter.hpp);
 // the shipped tool keeps the system allocator.
 //   build/bench_alloc [--model FILE] [--agents 1,2,4,8,16,32,64] [--plans N] [--guidance W] [--candidates K] [--json]
-// Worlds as bench --plan's: half-size 1.2 up to 8 robots, 2.4 up to 32 (neighbourhoods), 3.4 beyond.
+// Worlds as bench --plan's: half-size 1.2 up to 8 robots, 2.4 up to 32 (neighbourhoods), 3.4 beyond;
+// plans alternate between a world and the same world 8 steps on, cold and warm-started.
 #include <cstdio>
 
 #include "cli_common.hpp"
@@ -31,9 +32,12 @@ int main(int argc, char** argv) {
             planner.sampler.guidance = (float)guidance;
             planner.sampler.candidates = candidates;
             madbp::World world = madbp::make_random_world("empty", (int)n, 0, n > 32 ? 3.4 : n > 8 ? 2.4 : 1.2);
+            madbp::World later = world;  // 8 steps on: its plans are warm-started (SamplerConfig::warm_start)
+            for (int k = 0; k < 8; ++k) later.step(std::vector<madbp::Vec2>((size_t)later.size(), madbp::Vec2{0, 0}));
             madbp::Plan plan;
-            for (int i = 0; i < 3; ++i) planner.plan_into(world, plan);  // warm-up: workspaces take their sizes
-            const double per_plan = (double)count_allocs([&] { for (int i = 0; i < plans; ++i) planner.plan_into(world, plan); }) / plans;
+            auto cold_then_warm = [&] { planner.plan_into(world, plan); planner.plan_into(later, plan); };
+            for (int i = 0; i < 3; ++i) cold_then_warm();  // warm-up: workspaces take their sizes
+            const double per_plan = (double)count_allocs([&] { for (int i = 0; i < plans; ++i) cold_then_warm(); }) / (2.0 * plans);
             if (json) std::printf("%s\n", Json().add("bench", "alloc").add("agents", n).add("allocs_per_plan", per_plan).line().c_str());
             else std::printf("%4ld %12.1f\n", n, per_plan);
         }
