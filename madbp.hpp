@@ -3475,7 +3475,7 @@ private:
         if (local) batch_.noise_seed.resize(scenes);
         else batch_.noise_seed.clear();
         // Warm only when every robot of every scene has a last window to start from.
-        warm_ok_ = sampler.warm_start > 0 && last_t_ >= 0 && now_ > last_t_;
+        warm_ok_ = sampler.warm_start > 0 && sampler.warm_start < sampler.sample_steps && last_t_ >= 0 && now_ > last_t_;
         if (warm_ok_) warm_.setZero(2, (long)c.horizon * scenes * K);
         for (int b = 0; b < scenes; ++b) {
             int m = n;
