@@ -3373,7 +3373,8 @@ public:
     // Decentralised use: one robot plans its own window from what it can know, its position and
     // goal, the other robots' positions and goals as received from them, and the map. `id` seeds
     // the draw (use the robot's id): with the same planner seed, and `others` in the world's agent
-    // order, the window equals the one plan() gives this robot under neighbourhood planning (K =
+    // order, the window equals the one a cold plan() (a first one, or warm_start 0; plan_robot
+    // always draws cold) gives this robot under neighbourhood planning (K =
     // neighbourhood size of an automatic or set `neighbours`; the whole team when neighbours = 0).
     // `vel` (and Neighbour::vel) is read only by a model with ModelConfig::velocity_context, the
     // ids only by one with ModelConfig::priority_context (the robot's own `id`, and Neighbour::id).
