@@ -3131,14 +3131,13 @@ inline int warm_from(const NoiseSchedule& schedule, const SamplerConfig& sc, con
 // The warm window (SamplerConfig::warm_start) of a robot at `pos` from its last window, made
 // `elapsed` world steps ago (world waypoints for the steps 1, 2, ... after it was made): x's
 // columns col .. col + H - 1 get, as normalised displacements from `pos`, 0 and then the last
-// window's waypoints for the steps elapsed + t * stride, holding its last waypoint past its end.
+// window's waypoints for the steps elapsed + t * stride (waypoint_now: its last past its end).
 // False, x untouched, when there is no such window (elapsed outside [1, its length - 1]).
 inline bool warm_window(const std::vector<Vec2>& last, long elapsed, Vec2 pos, const ModelConfig& c, Mat& x, long col) {
     if (elapsed < 1 || elapsed >= (long)last.size()) return false;
-    const int H = c.horizon;
-    x.middleCols(col, H).setZero();
-    for (int t = 1; t < H; ++t) {
-        const Vec2 d = last[(size_t)std::min(elapsed + (long)t * c.waypoint_stride, (long)last.size()) - 1] - pos;
+    x.col(col).setZero();
+    for (int t = 1; t < c.horizon; ++t) {
+        const Vec2 d = waypoint_now(last, (int)elapsed + t * c.waypoint_stride) - pos;
         x(0, col + t) = (float)(d.x / c.window_scale);
         x(1, col + t) = (float)(d.y / c.window_scale);
     }
@@ -3429,8 +3428,7 @@ private:
     std::vector<int> last_ids_;
     std::vector<std::vector<Vec2>> last_windows_;
     long last_t_ = -1, now_ = -1;
-    Mat warm_;      // (2, H * scenes * K) the warm windows
-    bool warm_ok_ = false;  // every robot planned has one
+    Mat warm_;  // (2, H * scenes * K) the warm windows
 
     // key_: each robot's route steps (RouteGuide::route_steps) from where this planner first saw
     // it; from where it is for a robot without an id.
@@ -3476,8 +3474,8 @@ private:
         if (local) batch_.noise_seed.resize(scenes);
         else batch_.noise_seed.clear();
         // Warm only when every robot of every scene has a last window to start from.
-        warm_ok_ = sampler.warm_start > 0 && sampler.warm_start < sampler.sample_steps && last_t_ >= 0 && now_ > last_t_;
-        if (warm_ok_) warm_.setZero(2, (long)c.horizon * scenes * K);
+        bool warm = sampler.warm_start > 0 && sampler.warm_start < sampler.sample_steps && last_t_ >= 0 && now_ > last_t_;
+        if (warm) warm_.setZero(2, (long)c.horizon * scenes * K);
         for (int b = 0; b < scenes; ++b) {
             int m = n;
             members_.resize(n);
@@ -3506,14 +3504,14 @@ private:
                     continue;
                 }
                 const int i = members_[k];
-                if (warm_ok_) warm_ok_ = warm_from_last(i, a);
+                if (warm) warm = warm_from_last(i, a);
                 encode_agent(batch_, a, /*slot*/ k, pos_[i], route_[i].goal, map, c, route_[i].final, vel_[i],
                              c.priority_context ? priority_[k] : 1.0f);
             }
             batch_.count[b] = m;
         }
         if (sampler.conflict_aware()) conflict_.set_map(map);  // the distance field, once per map
-        sample_windows(model_, schedule_, batch_, sampler, rng_, x_, eps_, steps_, &conflict_, warm_ok_ ? &warm_ : nullptr);
+        sample_windows(model_, schedule_, batch_, sampler, rng_, x_, eps_, steps_, &conflict_, warm ? &warm_ : nullptr);
     }
 
     // Agent a's columns of warm_ from robot i's last window (detail::warm_window); false without one.

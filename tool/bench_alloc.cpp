@@ -32,8 +32,7 @@ int main(int argc, char** argv) {
             planner.sampler.guidance = (float)guidance;
             planner.sampler.candidates = candidates;
             madbp::World world = madbp::make_random_world("empty", (int)n, 0, n > 32 ? 3.4 : n > 8 ? 2.4 : 1.2);
-            madbp::World later = world;  // 8 steps on: its plans are warm-started (SamplerConfig::warm_start)
-            for (int k = 0; k < 8; ++k) later.step(std::vector<madbp::Vec2>((size_t)later.size(), madbp::Vec2{0, 0}));
+            const madbp::World later = held_still(world, 8);  // its plans are warm-started
             madbp::Plan plan;
             auto cold_then_warm = [&] { planner.plan_into(world, plan); planner.plan_into(later, plan); };
             for (int i = 0; i < 3; ++i) cold_then_warm();  // warm-up: workspaces take their sizes

@@ -105,8 +105,7 @@ inline int bench_plan(Args& a) {
         const int scenes = planner.last_scene_batch().B, per_scene = planner.last_scene_batch().n;
         // Warm plans: each of `plans` plans the world 8 steps on (robots held still) right after
         // an untimed plan of the world itself, so it starts from that plan's windows.
-        madbp::World later = world;
-        for (int k = 0; k < 8; ++k) later.step(std::vector<madbp::Vec2>((size_t)later.size(), madbp::Vec2{0, 0}));
+        const madbp::World later = held_still(world, 8);
         double warm_secs = 0;
         for (int i = 0; i < plans; ++i) {
             planner.plan_into(world, plan);
