@@ -31,7 +31,9 @@
 //        (barrier rate 4/s; the expert and SafetyFilterParams{} keep 2.5); safety_filter refuses a
 //        rate outside (0, 1/dt), where its barrier would not hold. PlanFollower also replans once
 //        a robot is FollowerConfig::replan_error = 0.15 off its plan, after half the interval
-//        (0 = the 0.1 follower).
+//        (0 = the 0.1 follower). PassageControl keys one-lane cells by the obstacles on
+//        either side (detail::surface_groups), so narrow gaps around a corridor's ends no longer
+//        hide it.
 //   0.1  world, maps, controllers.
 
 #ifndef MADBP_SIM_HPP
@@ -1743,6 +1745,49 @@ inline void for_each_neighbour(int n, int k, Fn&& fn) {
             fn(r2 * n + c2);
         }
 }
+
+// The obstacles of `map` that no robot centre fits between, as groups: group[i] for surface i
+// in for_each_surface's order (the four border walls, the discs, the boxes), numbered from 0.
+// Two surfaces are one group when the gap between them is below `gap` (boxes that meet, a disc
+// against a wall); the border walls are one group.
+inline std::vector<int> surface_groups(const WorldMap& map, double gap) {
+    const int discs = (int)map.discs.size(), count = 4 + discs + (int)map.boxes.size();
+    std::vector<int> parent(count);
+    for (int i = 0; i < count; ++i) parent[i] = i < 4 ? 0 : i;
+    auto root = [&](int i) { while (parent[i] != i) i = parent[i] = parent[parent[i]]; return i; };
+    const double h = map.half_size;
+    auto box_of = [&](int i) { return i < 4 + discs ? Box{map.discs[i - 4].c, map.discs[i - 4].c} : map.boxes[i - 4 - discs]; };
+    auto radius = [&](int i) { return i < 4 + discs ? map.discs[i - 4].r : 0.0; };
+    for (int i = 4; i < count; ++i) {
+        // A disc is the box of its centre grown by its radius: exact for the distances below.
+        const Box a = box_of(i);
+        const double to_border = std::min({h - a.hi.x, a.lo.x + h, h - a.hi.y, a.lo.y + h}) - radius(i);
+        if (to_border < gap) parent[root(i)] = root(0);
+        for (int j = 4; j < i; ++j) {
+            const Box b = box_of(j);
+            const double dx = std::max({0.0, a.lo.x - b.hi.x, b.lo.x - a.hi.x}), dy = std::max({0.0, a.lo.y - b.hi.y, b.lo.y - a.hi.y});
+            if (std::hypot(dx, dy) - radius(i) - radius(j) < gap) parent[root(i)] = root(j);
+        }
+    }
+    std::vector<int> group(count, -1), number(count, -1);
+    int groups = 0;
+    for (int i = 0; i < count; ++i) {
+        int& g = number[root(i)];
+        if (g < 0) g = groups++;
+        group[i] = g;
+    }
+    return group;
+}
+// The index (for_each_surface's order) of the surface nearest `p`.
+inline int nearest_surface(const WorldMap& map, Vec2 p) {
+    int i = 0, best = 0;
+    double nearest = std::numeric_limits<double>::infinity();
+    for_each_surface(map, p, [&](double d, Vec2) {
+        if (d < nearest) nearest = d, best = i;
+        ++i;
+    });
+    return best;
+}
 }  // namespace detail
 
 // Static clearance (distance from the cell centre to the nearest obstacle or wall surface) on
@@ -1939,9 +1984,13 @@ private:
 // (where the corridor has a short way around) to go around it.
 //   - One-lane cell: a centre fits there (clearance >= free_clear) and some line through it, in
 //     one of 8 directions, crosses the free space in less than one_lane_width - 2 free_clear
-//     (no room for a second centre 2 radius + a margin away). A passage: an 8-connected set of
-//     them with two mouths (the connected sets of free cells beside it) at least min_length
-//     apart: a corridor, not a doorway, a corner, a dead end or a junction. One with a way around
+//     (no room for a second centre 2 radius + a margin away). Its key: the two obstacle groups
+//     (detail::surface_groups: obstacles with no room for a centre between them are one, the
+//     border one) at the ends of its shortest such line. A passage: an 8-connected set of cells
+//     of one key with two mouths (the connected sets of free cells beside it, pockets aside) at
+//     least min_length apart: a corridor, not a doorway, a corner, a dead end or a junction.
+//     Keys keep the narrow gaps around a corridor's ends (a wall's end and a disc, a disc and
+//     the border) from joining it into a junction. One with a way around
 //     at most `bypass` longer is avoidable.
 //   - A robot's claim: the first passage on its route (RouteGuide::route_cells) within
 //     `lookahead`, how far along the route it starts (0: the robot is in it) and the mouth it
@@ -2124,6 +2173,23 @@ private:
             });
         }
     }
+    // Whether the free cells outside component `id` reached from `group` are all one-lane.
+    bool pocket(const ClearanceGrid& grid, const std::vector<int>& one_lane, const std::vector<int>& component, int id,
+                const std::vector<int>& group) {
+        const int n = grid.n;
+        std::vector<char> seen((size_t)n * n, 0);
+        queue_ = group;
+        for (int g : group) seen[g] = 1;
+        for (size_t head = 0; head < queue_.size(); ++head) {
+            if (one_lane[queue_[head]] < 0) return false;
+            detail::for_each_neighbour(n, queue_[head], [&](int k2) {
+                if (seen[k2] || component[k2] == id || grid.clear[k2] < params.free_clear) return;
+                seen[k2] = 1;
+                queue_.push_back(k2);
+            });
+        }
+        return true;
+    }
     // Whether a walk of at most `steps` cells through free cells outside component `id` leads from
     // mouth `from` to another mouth of the same passage (mouths from `from` on are that passage's).
     bool way_around(const ClearanceGrid& grid, const std::vector<int>& component, int id, int from, int steps) {
@@ -2151,20 +2217,34 @@ private:
             if (std::abs(q.x) >= grid.half || std::abs(q.y) >= grid.half) return false;
             return grid.clear[grid.index(q)] >= params.free_clear;
         };
-        std::vector<char> one_lane((size_t)n * n, 0);
+        // One-lane cells, keyed by the two obstacle groups their shortest chord ends at: a
+        // corridor's cells all end at its two walls, so a narrow gap between a wall's end and a
+        // disc nearby, or a disc and the border, does not join it into a junction.
+        const std::vector<int> surface_group = detail::surface_groups(map, 2 * params.free_clear);
+        const int groups = 1 + *std::max_element(surface_group.begin(), surface_group.end());
+        std::vector<int> one_lane((size_t)n * n, -1);  // the key of a one-lane cell, else -1
         for (int k = 0; k < n * n; ++k) {
             if (grid.clear[k] < params.free_clear) continue;
             const Vec2 c = grid.centre(k);
-            for (int d = 0; d < 8 && !one_lane[k]; ++d) {
+            double shortest = chord_max;
+            Vec2 ends[2];
+            for (int d = 0; d < 8; ++d) {
                 const double angle = d * 0.39269908169872414;  // pi / 8
                 const Vec2 u{std::cos(angle), std::sin(angle)};
                 double chord = 0;
-                for (int side = -1; side <= 1 && chord < chord_max; side += 2)
-                    for (double s = step; chord < chord_max && fits(c + u * (side * s)); s += step) chord += step;
-                one_lane[k] = chord < chord_max;
+                Vec2 end[2];
+                for (int side = 0; side < 2 && chord < shortest; ++side) {
+                    const Vec2 way = side ? u : u * -1.0;
+                    double s = step;
+                    for (; chord < shortest && fits(c + way * s); s += step) chord += step;
+                    end[side] = c + way * s;
+                }
+                if (chord < shortest) shortest = chord, ends[0] = end[0], ends[1] = end[1];
             }
+            if (shortest >= chord_max) continue;
+            const int a = surface_group[detail::nearest_surface(map, ends[0])], b = surface_group[detail::nearest_surface(map, ends[1])];
+            one_lane[k] = std::min(a, b) * groups + std::max(a, b);
         }
-        auto free_beside = [&](int k) { return grid.clear[k] >= params.free_clear && !one_lane[k]; };
         passage_.assign((size_t)n * n, -1);
         mouth_.assign((size_t)n * n, -1);
         mouths_.clear();
@@ -2173,21 +2253,29 @@ private:
         std::vector<int> component((size_t)n * n, -1), cells, group;
         int passages = 0, components = 0;
         for (int k = 0; k < n * n; ++k) {
-            if (!one_lane[k] || component[k] != -1) continue;
+            if (one_lane[k] < 0 || component[k] != -1) continue;
             cells.clear();
             const int id = components++;
-            flood(n, k, [&](int k2) { return one_lane[k2] && component[k2] == -1; }, component, id, cells);
-            // Its mouths: free cells beside it, not yet another passage's, grouped by connection.
+            flood(n, k, [&](int k2) { return one_lane[k2] == one_lane[k] && component[k2] == -1; }, component, id, cells);
+            // Its mouths: free cells beside it (other one-lane cells too), not yet another
+            // passage's, grouped by connection; a pocket (a sliver beside a wall's end, from which
+            // no free cell outside a one-lane region is reached without crossing the passage) is
+            // no mouth.
             std::vector<int> beside;
             for (int c : cells)
                 detail::for_each_neighbour(n, c, [&](int k2) {
-                    if (free_beside(k2) && mouth_[k2] == -1) mouth_[k2] = -3, beside.push_back(k2);  // -3: beside, ungrouped
+                    if (grid.clear[k2] >= params.free_clear && component[k2] != id && mouth_[k2] == -1)
+                        mouth_[k2] = -3, beside.push_back(k2);  // -3: beside, ungrouped
                 });
             const size_t first_mouth = mouths_.size();
             for (int b : beside) {
                 if (mouth_[b] != -3) continue;
                 group.clear();
                 flood(n, b, [&](int k2) { return mouth_[k2] == -3; }, mouth_, (int)mouths_.size(), group);
+                if (pocket(grid, one_lane, component, id, group)) {
+                    for (int g : group) mouth_[g] = -1;
+                    continue;
+                }
                 Mouth m;
                 m.passage = passages;
                 Vec2 inner;
