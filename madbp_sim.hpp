@@ -1995,10 +1995,11 @@ private:
 //   - A robot's claim: the first passage on its route (RouteGuide::route_cells) within
 //     `lookahead`, how far along the route it starts (0: the robot is in it) and the mouth it
 //     enters by (in it: the mouth nearest it other than the one its route leaves by).
-//   - Of the claims on a passage, the nearest (then the lower index) holds it; the claims that
-//     enter by another mouth wait in a queue at theirs: places wait_back out from the mouth's
-//     centre, then every queue_spacing, each wait_side to the right of the way in (to the left,
-//     or on that line, where there is no room), each taken by the robot nearest it of those left.
+//   - Of the claims on a passage, the nearest (then the one with less of it ahead, then the
+//     lower index) holds it; the claims that enter by another mouth wait in a queue at theirs:
+//     places wait_back out from the mouth's centre, then every queue_spacing, each wait_side to
+//     the right of the way in (to the left, or on that line, where there is no room), each
+//     taken by the robot nearest it of those left.
 //     A robot in the passage that must wait backs out. At an avoidable passage a robot that
 //     would wait outside it goes around instead (go_around): its route keeps out of the passage
 //     (closed_to, ClosedCells) while the holders are in it.
@@ -2090,7 +2091,9 @@ public:
             if (seen) continue;
             const Claim* lead = &claims_[a];
             for (size_t b = a + 1; b < claims_.size(); ++b)
-                if (claims_[b].passage == lead->passage && claims_[b].entry < lead->entry) lead = &claims_[b];
+                if (claims_[b].passage == lead->passage &&
+                    (claims_[b].entry < lead->entry || (claims_[b].entry == lead->entry && claims_[b].exit < lead->exit)))
+                    lead = &claims_[b];
             losers_.clear();
             for (size_t b = a; b < claims_.size(); ++b) {
                 if (claims_[b].passage != lead->passage || claims_[b].mouth == lead->mouth) continue;

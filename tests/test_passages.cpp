@@ -163,6 +163,12 @@ TEST_CASE("passages: a robot that arrives after the other is out goes on; one in
     REQUIRE(inside.wait[1] == kWait);
     CHECK(inside.point[1].y < -0.45);
     check_waiting_point(map, inside.point[1]);
+    // Both in it, one just inside its mouth: the one with less of the passage ahead goes on,
+    // whatever its index (a robot passing the mouth on its way around once took the corridor
+    // from one halfway through).
+    Turns deeper = arbitrate(map, {{0, -0.35}, {0, -0.1}}, {{0, 0.9}, {0, -0.9}});
+    CHECK(deeper.wait == std::vector<char>{kWait, kGoOn});
+    CHECK(deeper.point[0].y < -0.45);
     // A queue: two robots waiting at one mouth take different places.
     Turns queue = arbitrate(map, {{0, -0.6}, {0, 0.7}, {0, 1.0}}, {{0, 0.9}, {0, -0.9}, {0.1, -0.7}});
     REQUIRE(queue.wait == std::vector<char>{kGoOn, kWait, kWait});
