@@ -2179,6 +2179,7 @@ private:
     // Whether the free cells outside component `id` reached from `group` are all one-lane.
     bool pocket(const ClearanceGrid& grid, const std::vector<int>& one_lane, const std::vector<int>& component, int id,
                 const std::vector<int>& group) {
+        if (std::any_of(group.begin(), group.end(), [&](int g) { return one_lane[g] < 0; })) return false;  // the usual mouth
         const int n = grid.n;
         std::vector<char> seen((size_t)n * n, 0);
         queue_ = group;
@@ -2225,7 +2226,7 @@ private:
         // disc nearby, or a disc and the border, does not join it into a junction.
         const std::vector<int> surface_group = detail::surface_groups(map, 2 * params.free_clear);
         const int groups = 1 + *std::max_element(surface_group.begin(), surface_group.end());
-        std::vector<int> one_lane((size_t)n * n, -1);  // the key of a one-lane cell, else -1
+        std::vector<int> one_lane((size_t)n * n, -1);  // the key of a one-lane cell (< (kMaxObstacles + 1)^2), else -1
         for (int k = 0; k < n * n; ++k) {
             if (grid.clear[k] < params.free_clear) continue;
             const Vec2 c = grid.centre(k);
