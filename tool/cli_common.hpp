@@ -103,8 +103,6 @@ struct Args {
     }
 };
 
-// A --scene fixes the map, the team and the world size: --map, --agents or --half-size beside
-// it is an error, not silently ignored.
 // `world` `steps` steps on with every robot held still: a plan of it right after a plan of
 // `world` starts from that plan's windows (SamplerConfig::warm_start). bench --plan times such
 // warm plans, bench_alloc counts their allocations.
@@ -113,6 +111,8 @@ inline madbp::World held_still(madbp::World world, int steps) {
     return world;
 }
 
+// A --scene fixes the map, the team and the world size: --map, --agents or --half-size beside
+// it is an error, not silently ignored.
 inline void refuse_scene_overrides(const Args& a, const std::string& scene_path) {
     if (scene_path.empty()) return;
     for (const char* k : {"--map", "--agents", "--half-size"})
