@@ -1916,6 +1916,15 @@ public:
         const int s = field(grid_.index(goal))[grid_.index(p)];
         return s >= 0 ? s : kRouteUnreachable;
     }
+    // Steps of the walk subgoal() takes from p to goal keeping out of `closed` (from the cell it
+    // starts at, which may be a neighbour of p's); kRouteUnreachable when no route is known.
+    int walk_steps(const WorldMap& map, Vec2 p, Vec2 goal, ClosedCells closed) {
+        set_map(map);
+        check(closed);
+        const std::vector<int>& steps = field(grid_.index(goal), closed);
+        const int k = start_cell(steps, grid_.index(p));
+        return k >= 0 ? steps[k] : kRouteUnreachable;
+    }
 
 private:
     ClearanceGrid grid_;
@@ -2015,6 +2024,8 @@ struct PassageParams {
     double min_length = 0.5;       // only passages whose mouths are this far apart (corridors, not doorways);
     double bypass = 1.0;           // one with a way around at most this much longer is avoidable:
     bool go_around = true;         // robots that would wait go around it (false: it is no passage)
+    double spread = 0.3;           // and take its two sides in turn: each the side whose way, plus this per
+                                   // robot already going that side, is shortest (0: all the shortest way)
 };
 class PassageControl {
 public:
@@ -2047,7 +2058,7 @@ public:
     int arbitrate(RouteGuide& guide, const WorldMap& map, int n, const Vec2* pos, const Vec2* goal, const char* at_goal,
                   std::vector<char>& wait, std::vector<Vec2>& point) {
         const PassageParams& p = params;
-        const double lengths[] = {p.one_lane_width, p.free_clear, p.lookahead, p.wait_back, p.queue_spacing, p.wait_side, p.min_length, p.bypass};
+        const double lengths[] = {p.one_lane_width, p.free_clear, p.lookahead, p.wait_back, p.queue_spacing, p.wait_side, p.min_length, p.bypass, p.spread};
         for (double v : lengths)
             if (!(v >= 0) || !std::isfinite(v)) throw std::invalid_argument("PassageParams: every length must be a finite number >= 0 (got " + number_text(v) + ")");
         const std::vector<int>& cell_passage = passage(guide, map);
@@ -2055,6 +2066,7 @@ public:
         wait.assign(n, kGoOn);
         point.assign(goal, goal + n);
         around_.assign(n, -1);
+        around_side_.assign(n, -1);
         claims_.clear();
         if (mouths_.empty()) return 0;
         const int max_cells = 2 + (int)std::ceil(p.lookahead / grid.cell);
@@ -2110,6 +2122,7 @@ public:
                     losers_.push_back((int)b);
                 }
             }
+            if (p.spread > 0 && avoidable_[lead->passage]) spread_around(guide, map, lead->passage, pos, goal);
             // The queue at each waiting mouth: its places from the mouth out, each to the robot
             // nearest it of those left (robots keep their places as they walk to them).
             for (int m = 0; m < (int)mouths_.size(); ++m) {
@@ -2133,6 +2146,10 @@ public:
     // The cells robot i of the last arbitrate() keeps out of (its passage's; none unless it goes around).
     ClosedCells closed_to(int i) const {
         if (i < 0 || i >= (int)around_.size() || around_[i] < 0) return {};
+        if (around_side_[i] >= 0) {
+            const int s = 2 * around_[i] + around_side_[i];
+            return {&side_closed_[s], 1, closed_key_[around_[i]] ^ (0x9E3779B97F4A7C15ull * (uint64_t)(around_side_[i] + 1))};
+        }
         return {&passage_, around_[i], closed_key_[around_[i]]};
     }
 
@@ -2143,10 +2160,11 @@ private:
     };
     WorldMap map_;
     double made_with_[6] = {};  // the parameters and cell the passages were found with
-    std::vector<int> passage_, mouth_, route_, losers_, queue_, around_;
+    std::vector<int> passage_, mouth_, route_, losers_, queue_, around_, around_side_, going_;
     std::vector<Mouth> mouths_;
     std::vector<char> avoidable_;    // per passage: it has a way around within `bypass`
     std::vector<uint64_t> closed_key_;  // per passage: ClosedCells::key of its cells
+    std::vector<std::vector<int>> side_closed_;  // per avoidable passage p and side s, [2p + s]: 1 where a robot going around on s keeps out
     std::vector<Claim> claims_;
 
     // Where the robot waits that is `distance` out from mouth m: right of the way in, left, or on it,
@@ -2163,6 +2181,59 @@ private:
         return clamp_box(base, lim);
     }
 
+    // Robots going around passage `id` (around_) take its two sides in turn, the claim nearest it
+    // first: each the side whose way to its goal, plus `spread` per robot already going that
+    // side, is shortest (ties: the shorter way, then side 0). Two robots queueing through the
+    // same gap beside a corridor lose more than one going a little farther round the other side.
+    void spread_around(RouteGuide& guide, const WorldMap& map, int id, const Vec2* pos, const Vec2* goal) {
+        going_.clear();
+        for (int c = 0; c < (int)claims_.size(); ++c)
+            if (around_[claims_[c].robot] == id) going_.push_back(c);
+        std::sort(going_.begin(), going_.end(), [&](int a, int b) {
+            return claims_[a].entry != claims_[b].entry ? claims_[a].entry < claims_[b].entry : claims_[a].robot < claims_[b].robot;
+        });
+        int taking[2] = {0, 0};
+        for (int c : going_) {
+            const int r = claims_[c].robot;
+            double cost[2];
+            int steps[2];
+            for (int s = 0; s < 2; ++s) {
+                around_side_[r] = s;
+                steps[s] = guide.walk_steps(map, pos[r], goal[r], closed_to(r));
+                cost[s] = steps[s] * guide.cell + params.spread * taking[s];
+            }
+            int side = cost[1] < cost[0] || (cost[1] == cost[0] && steps[1] < steps[0]) ? 1 : 0;
+            if (steps[side] >= RouteGuide::kRouteUnreachable) side = -1;  // neither side has a way: keep out of the passage only
+            around_side_[r] = side;
+            if (side >= 0) ++taking[side];
+        }
+    }
+    // The cells a robot going around the passage of `cells` (mouths a, b) on side `side` keeps
+    // out of (closed[k] = 1): the passage, and a band 3 cells wide from its middle across the
+    // other side, through the wall there and the free space beyond, to the next obstacle or the
+    // border. That side's way around crosses the band, so the robot's way takes side `side`.
+    void close_side(const ClearanceGrid& grid, const std::vector<int>& cells, const Mouth& a, const Mouth& b, int side, std::vector<int>& closed) const {
+        const int n = grid.n;
+        closed.assign((size_t)n * n, 0);
+        for (int c : cells) closed[c] = 1;
+        const Vec2 middle = (a.at + b.at) * 0.5, u = normalized(b.at - a.at);
+        const Vec2 across = side == 0 ? Vec2{u.y, -u.x} : Vec2{-u.y, u.x};  // side 0 passes left of a -> b: close the right
+        int start = cells[0];
+        for (int c : cells)
+            if (norm(grid.centre(c) - middle) < norm(grid.centre(start) - middle)) start = c;
+        int phase = 0;  // 0: in the passage, 1: in the wall beside it, 2: in the free space beyond
+        for (double t = 0;; t += 0.5 * grid.cell) {
+            const Vec2 q = grid.centre(start) + across * t;
+            if (std::abs(q.x) >= grid.half || std::abs(q.y) >= grid.half) break;
+            const int k = grid.index(q);
+            const bool blocked = grid.clear[k] < params.free_clear;
+            if (phase == 0 && blocked) phase = 1;
+            if (phase == 1 && !blocked) phase = 2;
+            if (phase == 2 && blocked) break;
+            closed[k] = 1;
+            detail::for_each_neighbour(n, k, [&](int k2) { closed[k2] = 1; });
+        }
+    }
     // 8-connected flood from `seed` over the cells k with open(k) (not yet labelled): labels them
     // `id` and appends them to out.
     template <class Open>
@@ -2254,6 +2325,7 @@ private:
         mouths_.clear();
         avoidable_.clear();
         closed_key_.clear();
+        side_closed_.clear();
         std::vector<int> component((size_t)n * n, -1), cells, group;
         int passages = 0, components = 0;
         for (int k = 0; k < n * n; ++k) {
@@ -2312,6 +2384,10 @@ private:
                 key = (key ^ (uint64_t)c) * 1099511628211ull;
             }
             closed_key_.push_back(key | 1);  // never 0 (no cells)
+            side_closed_.resize(2 * (passages + 1));
+            if (avoidable)
+                for (int side = 0; side < 2; ++side)
+                    close_side(grid, cells, mouths_[first_mouth], mouths_[first_mouth + 1], side, side_closed_[2 * passages + side]);
             ++passages;
         }
         map_ = map;

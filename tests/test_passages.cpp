@@ -57,6 +57,21 @@ void check_waiting_point(const WorldMap& map, Vec2 q) {
     CHECK(p[guide.grid().index(q)] < 0);
 }
 
+// Walks the route subgoals (0.3 apart) from `from` to `to` keeping out of `closed`: the points
+// along the way, every tenth of a leg; empty when it does not arrive within 40 legs.
+std::vector<Vec2> walk_route(const WorldMap& map, Vec2 from, Vec2 to, ClosedCells closed) {
+    RouteGuide guide;
+    std::vector<Vec2> points;
+    Vec2 p = from;
+    for (int leg = 0; leg < 40; ++leg) {
+        const RouteGoal r = guide.subgoal(map, p, to, 0.3, closed);
+        for (int k = 1; k <= 10; ++k) points.push_back(p + (r.goal - p) * (k / 10.0));
+        if (r.final && norm(r.goal - to) < 1e-9) return points;
+        p = r.goal;
+    }
+    return {};
+}
+
 }  // namespace
 
 TEST_CASE("passages: a long one-lane corridor, avoidable when it has a way around; not a doorway or a wide corridor") {
@@ -187,27 +202,66 @@ TEST_CASE("passages: at a corridor with a way around, the robot that would wait 
     // Walking robot 1's route subgoals with the corridor closed: it arrives without entering it,
     // out of the corridor's strip (|x| <= 0.32) while level with it.
     RouteGuide guide;
-    Vec2 p{0, 0.9};
-    bool arrived = false;
-    for (int step = 0; step < 40 && !arrived; ++step) {
-        const RouteGoal r = guide.subgoal(map, p, {0, -0.9}, 0.3, closed);
-        for (int k = 1; k <= 10; ++k) {
-            const Vec2 q = p + (r.goal - p) * (k / 10.0);
-            CHECK(!closed.closes(guide.grid(map).index(q)));
-            if (std::abs(q.y) < 0.4) CHECK(std::abs(q.x) > 0.32);
-        }
-        arrived = r.final && norm(r.goal - Vec2{0, -0.9}) < 1e-9;
-        p = r.goal;
+    const std::vector<Vec2> route = walk_route(map, {0, 0.9}, {0, -0.9}, closed);
+    CHECK(!route.empty());
+    for (Vec2 q : route) {
+        CHECK(!closed.closes(guide.grid(map).index(q)));
+        if (std::abs(q.y) < 0.4) CHECK(std::abs(q.x) > 0.32);
     }
-    CHECK(arrived);
     // A closed set that does not match the grid is named.
     const std::vector<int> wrong(7, 0);
-    CHECK_THROWS_WITH_AS(guide.subgoal(map, p, {0, -0.9}, 0.3, {&wrong, 0, 5}), doctest::Contains("ClosedCells.label"), std::invalid_argument);
+    CHECK_THROWS_WITH_AS(guide.subgoal(map, {0, 0.9}, {0, -0.9}, 0.3, {&wrong, 0, 5}), doctest::Contains("ClosedCells.label"), std::invalid_argument);
     // Without the corridor closed the route runs through it.
     CHECK(std::abs(guide.subgoal(map, {0, 0.9}, {0, -0.9}, 0.6).goal.x) < 0.1);
     // A robot already in the corridor the wrong way backs out, as where there is no way around.
     const Turns inside = arbitrate(map, {{0, 0.15}, {0, -0.15}}, {{0, -0.9}, {0, 0.9}});
     CHECK(inside.wait == std::vector<char>{kGoOn, kWait});
+}
+
+TEST_CASE("passages: robots going around a corridor take its two sides in turn; with spread 0, the same side") {
+    // One robot comes up the corridor; two wait to come down it, both on its axis, where the two
+    // ways around are equally long. Each robot's side: the sign of x while level with the corridor.
+    const WorldMap map = corridor_map(0.44, 0.4, /*free standing*/ true);
+    const std::vector<Vec2> pos{{0, -0.7}, {0, 0.75}, {0, 1.0}}, goal{{0, 0.95}, {0, -0.8}, {0, -1.05}};
+    auto sides = [&](double spread) {
+        PassageControl pc;
+        pc.params.spread = spread;
+        const Turns t = arbitrate(map, pos, goal, {}, &pc);
+        REQUIRE(t.wait == std::vector<char>{kGoOn, kAround, kAround});
+        RouteGuide guide;
+        const std::vector<int>& passage = pc.passage(guide, map);
+        std::vector<int> side;
+        for (int i : {1, 2}) {
+            const ClosedCells closed = pc.closed_to(i);
+            REQUIRE(closed.label != nullptr);
+            for (size_t k = 0; k < passage.size(); ++k)
+                if (passage[k] >= 0) REQUIRE(closed.closes((int)k));  // a side's cells include the corridor's
+            const std::vector<Vec2> route = walk_route(map, pos[i], goal[i], closed);
+            REQUIRE(!route.empty());
+            double x = 0;
+            for (Vec2 q : route)
+                if (std::abs(q.y) < 0.4) x += q.x;
+            side.push_back(x > 0 ? 1 : -1);
+        }
+        return side;
+    };
+    const std::vector<int> spread = sides(0.3), shortest = sides(0);
+    CHECK(spread[0] == -spread[1]);
+    CHECK(shortest[0] == shortest[1]);
+    // Where one side has no way round (the corridor near the border: 0.06 on its right), both
+    // take the other.
+    WorldMap near_border = corridor_map(0.44, 0.4, true);
+    for (Box& b : near_border.boxes) b.lo.x += 0.82, b.hi.x += 0.82;
+    PassageControl pc;
+    const std::vector<Vec2> p2{{0.82, -0.7}, {0.82, 0.75}, {0.82, 1.0}}, g2{{0.82, 0.95}, {0.82, -0.8}, {0.82, -1.05}};
+    const Turns t = arbitrate(near_border, p2, g2, {}, &pc);
+    REQUIRE(t.wait == std::vector<char>{kGoOn, kAround, kAround});
+    for (int i : {1, 2}) {
+        const std::vector<Vec2> route = walk_route(near_border, p2[i], g2[i], pc.closed_to(i));
+        REQUIRE(!route.empty());
+        for (Vec2 q : route)
+            if (std::abs(q.y) < 0.4) CHECK(q.x < 0.5);
+    }
 }
 
 TEST_CASE("passages: bad parameters are named") {
@@ -220,6 +274,9 @@ TEST_CASE("passages: bad parameters are named") {
     CHECK_THROWS_WITH_AS(pc.arbitrate(guide, WorldMap{}, 1, pos.data(), goal.data(), at.data(), wait, point),
                          doctest::Contains("PassageParams"), std::invalid_argument);
     pc.params.lookahead = std::nan("");
+    CHECK_THROWS_AS(pc.arbitrate(guide, WorldMap{}, 1, pos.data(), goal.data(), at.data(), wait, point), std::invalid_argument);
+    pc.params.lookahead = 1.2;
+    pc.params.spread = -0.3;
     CHECK_THROWS_AS(pc.arbitrate(guide, WorldMap{}, 1, pos.data(), goal.data(), at.data(), wait, point), std::invalid_argument);
 }
 

@@ -29,6 +29,7 @@ struct PlannerOptions {
     bool take_turns = true;    // DiffusionPlanner::take_turns (one-lane passages)
     double one_lane_width = madbp::PassageParams{}.one_lane_width;
     bool go_around = madbp::PassageParams{}.go_around;  // PassageParams::go_around
+    double spread = madbp::PassageParams{}.spread;      // PassageParams::spread (0: all the shortest way)
     double replan_error = madbp::FollowerConfig{}.replan_error;  // 0: replan only every m steps
     int warm_start = madbp::kDefaultWarmStart;  // SamplerConfig::warm_start (0: off)
 };
@@ -65,6 +66,7 @@ inline PlannerOptions read_planner_options(Args& a) {
     o.take_turns = a.integer("--take-turns", o.take_turns ? 1 : 0, 0, 1) != 0;
     o.one_lane_width = a.real("--one-lane-width", o.one_lane_width, 0, 100);
     o.go_around = a.integer("--go-around", o.go_around ? 1 : 0, 0, 1) != 0;
+    o.spread = a.real("--spread", o.spread, 0, 100);
     o.replan_error = a.real("--replan-error", o.replan_error, 0, 100);
     o.warm_start = (int)a.integer("--warm-start", o.warm_start, 0, 1000);
     return o;
@@ -98,6 +100,7 @@ inline madbp::PolicyFactory planner_factory(std::shared_ptr<const madbp::MadbpMo
         planner->take_turns = o.take_turns;
         planner->passages.params.one_lane_width = o.one_lane_width;
         planner->passages.params.go_around = o.go_around;
+        planner->passages.params.spread = o.spread;
         return std::make_unique<madbp::PlanFollower>([planner](const madbp::World& w) { return planner->plan(w); }, fc);
     };
 }
@@ -142,8 +145,10 @@ inline void register_nn_methods(std::vector<Method>& m) {
                  "                    --take-turns 0|1 (robots meeting head-on in a one-lane corridor take turns,\n"
                  "                    one waiting beside its mouth; default 1), --go-around 0|1 (where the corridor\n"
                  "                    has a way around at most 1.0 longer, the one that would wait goes around it;\n"
-                 "                    default 1), --one-lane-width W (passages narrower than W wall to wall are\n"
-                 "                    one-lane; default 0.54)",
+                 "                    default 1), --spread S (robots going around one take its two sides in turn:\n"
+                 "                    each the side whose way, plus S per robot already going that side, is\n"
+                 "                    shortest; default 0.3, 0 = all the shortest way), --one-lane-width W (passages\n"
+                 "                    narrower than W wall to wall are one-lane; default 0.54)",
                  [](Args& a, const MethodSetup& s) { return madbp_method(read_planner_options(a), s); }});
 }
 
