@@ -33,7 +33,8 @@
 //        a robot is FollowerConfig::replan_error = 0.15 off its plan, after half the interval
 //        (0 = the 0.1 follower). PassageControl keys one-lane cells by the obstacles on
 //        either side (detail::surface_groups), so narrow gaps around a corridor's ends no longer
-//        hide it.
+//        hide it. Robots going around a corridor take its two sides in turn (PassageParams::spread);
+//        RouteGuide::walk_steps.
 //   0.1  world, maps, controllers.
 
 #ifndef MADBP_SIM_HPP
@@ -2011,7 +2012,9 @@ private:
 //     taken by the robot nearest it of those left.
 //     A robot in the passage that must wait backs out. At an avoidable passage a robot that
 //     would wait outside it goes around instead (go_around): its route keeps out of the passage
-//     (closed_to, ClosedCells) while the holders are in it.
+//     (closed_to, ClosedCells) while the holders are in it, and robots going around the same
+//     passage take its two sides in turn (spread; closed_to then also closes the other side).
+// Memory: a few grids, plus two per avoidable passage (its sides).
 // Claims are made afresh at every call from positions and goals alone, so robots that plan for
 // themselves with the same information reach the same decision.
 struct PassageParams {
