@@ -3264,8 +3264,9 @@ public:
     struct Neighbour {
         Vec2 pos, goal;
         Vec2 vel = {0, 0};  // read only by a model with ModelConfig::velocity_context
-        int id = -1;        // read only by a model with ModelConfig::priority_context: its priority key is its
-                            // route when this planner first saw that id (-1: unknown, its route now)
+        int id = -1;        // breaks ties in taking turns (take_turns: the lower id goes first, -1 after any id), and
+                            // with ModelConfig::priority_context its priority key is its route when this planner
+                            // first saw that id (-1: unknown, its route now)
     };
     SamplerConfig sampler;
     // Who plans with whom. 0: the whole team in one scene (the paper's). K > 0: neighbourhood
@@ -3375,8 +3376,9 @@ public:
     // order, the window equals the one a cold plan() (a first one, or warm_start 0; plan_robot
     // always draws cold) gives this robot under neighbourhood planning (K =
     // neighbourhood size of an automatic or set `neighbours`; the whole team when neighbours = 0).
-    // `vel` (and Neighbour::vel) is read only by a model with ModelConfig::velocity_context, the
-    // ids only by one with ModelConfig::priority_context (the robot's own `id`, and Neighbour::id).
+    // `vel` (and Neighbour::vel) is read only by a model with ModelConfig::velocity_context. The
+    // ids (the robot's own `id`, and Neighbour::id) break ties in taking turns, so give the ids
+    // the team's plan() sees for the same turns, and are read by a model with priority_context.
     void plan_robot(const WorldMap& map, int id, Vec2 pos, Vec2 goal, const std::vector<Neighbour>& others, std::vector<Vec2>& window,
                     Vec2 vel = {0, 0}) {
         const int n = 1 + (int)others.size();
@@ -3462,7 +3464,7 @@ private:
         }
         if (shared) update_grid(map);
         waiting_.assign(n, PassageControl::kGoOn);
-        if (take_turns) passages.arbitrate(guide_, map, n, pos_.data(), goal_.data(), at_goal_.data(), waiting_, wait_point_);
+        if (take_turns) passages.arbitrate(guide_, map, n, pos_.data(), goal_.data(), at_goal_.data(), waiting_, wait_point_, ids_.data());
         route_.resize(n);
         for (int i = 0; i < n; ++i)
             route_[i] = waiting_[i] == PassageControl::kWait ? RouteGoal{wait_point_[i], true}

@@ -2006,17 +2006,17 @@ private:
 //     `lookahead`, how far along the route it starts (0: the robot is in it) and the mouth it
 //     enters by (in it: the mouth nearest it other than the one its route leaves by).
 //   - Of the claims on a passage, the nearest (then the one with less of it ahead, then the
-//     lower index) holds it; the claims that enter by another mouth wait in a queue at theirs:
-//     places wait_back out from the mouth's centre, then every queue_spacing, each wait_side to
-//     the right of the way in (to the left, or on that line, where there is no room), each
-//     taken by the robot nearest it of those left.
+//     lower id, then the lower index) holds it; the claims that enter by another mouth wait in
+//     a queue at theirs: places wait_back out from the mouth's centre, then every
+//     queue_spacing, each wait_side to the right of the way in (to the left, or on that line,
+//     where there is no room), each taken by the robot nearest it of those left.
 //     A robot in the passage that must wait backs out. At an avoidable passage a robot that
 //     would wait outside it goes around instead (go_around): its route keeps out of the passage
 //     (closed_to, ClosedCells) while the holders are in it, and robots going around the same
 //     passage take its two sides in turn (spread; closed_to then also closes the other side).
 // Memory: a few grids, plus two per avoidable passage (its sides).
-// Claims are made afresh at every call from positions and goals alone, so robots that plan for
-// themselves with the same information reach the same decision.
+// Claims are made afresh at every call from positions, goals and ids alone, so robots that plan
+// for themselves with the same information reach the same decision.
 struct PassageParams {
     double one_lane_width = 0.54;  // passages narrower than this, wall to wall, are one-lane (world units)
     double free_clear = 0.12;      // a robot's centre fits where the clearance is >= this (radius + 0.02)
@@ -2054,12 +2054,13 @@ public:
     const std::vector<char>& avoidable() const { return avoidable_; }  // per passage: has a way around within `bypass`
     const std::vector<Mouth>& mouths() const { return mouths_; }
 
-    // For robots i < n at pos[i] heading for goal[i] (at_goal[i]: arrived, claims nothing):
+    // For robots i < n at pos[i] heading for goal[i] (at_goal[i]: arrived, claims nothing; ids[i]:
+    // the robot's id, which breaks ties, or nullptr: the index does):
     // wait[i] = kWait and point[i] = where to wait; kGoAround (keep out of the passage
     // closed_to(i) on the way to goal[i]); or kGoOn (point[i] = goal[i]). Returns how many do not go on.
     enum Turn : char { kGoOn = 0, kWait = 1, kGoAround = 2 };
     int arbitrate(RouteGuide& guide, const WorldMap& map, int n, const Vec2* pos, const Vec2* goal, const char* at_goal,
-                  std::vector<char>& wait, std::vector<Vec2>& point) {
+                  std::vector<char>& wait, std::vector<Vec2>& point, const int* ids = nullptr) {
         const PassageParams& p = params;
         const double lengths[] = {p.one_lane_width, p.free_clear, p.lookahead, p.wait_back, p.queue_spacing, p.wait_side, p.min_length, p.bypass, p.spread};
         for (double v : lengths)
@@ -2107,7 +2108,8 @@ public:
             const Claim* lead = &claims_[a];
             for (size_t b = a + 1; b < claims_.size(); ++b)
                 if (claims_[b].passage == lead->passage &&
-                    (claims_[b].entry < lead->entry || (claims_[b].entry == lead->entry && claims_[b].exit < lead->exit)))
+                    (claims_[b].entry < lead->entry ||
+                     (claims_[b].entry == lead->entry && (claims_[b].exit < lead->exit || (claims_[b].exit == lead->exit && before(ids, claims_[b], *lead))))))
                     lead = &claims_[b];
             losers_.clear();
             for (size_t b = a; b < claims_.size(); ++b) {
@@ -2125,7 +2127,7 @@ public:
                     losers_.push_back((int)b);
                 }
             }
-            if (p.spread > 0 && avoidable_[lead->passage]) spread_around(guide, map, lead->passage, pos, goal);
+            if (p.spread > 0 && avoidable_[lead->passage]) spread_around(guide, map, lead->passage, pos, goal, ids);
             // The queue at each waiting mouth: its places from the mouth out, each to the robot
             // nearest it of those left (robots keep their places as they walk to them).
             for (int m = 0; m < (int)mouths_.size(); ++m) {
@@ -2184,16 +2186,23 @@ private:
         return clamp_box(base, lim);
     }
 
+    // Of two claims as near, which comes first: the lower id, robots without one (no ids, or
+    // id < 0) after those with one, then the lower index. By id, a robot planning for itself
+    // (the others in another order) decides as the team's plan does.
+    static bool before(const int* ids, const Claim& a, const Claim& b) {
+        auto rank = [&](const Claim& c) { return ids && ids[c.robot] >= 0 ? ids[c.robot] : std::numeric_limits<int>::max(); };
+        return rank(a) != rank(b) ? rank(a) < rank(b) : a.robot < b.robot;
+    }
     // Robots going around passage `id` (around_) take its two sides in turn, the claim nearest it
-    // first: each the side whose way to its goal, plus `spread` per robot already going that
+    // first (then before()): each the side whose way to its goal, plus `spread` per robot already going that
     // side, is shortest (ties: the shorter way, then side 0). Two robots queueing through the
     // same gap beside a corridor lose more than one going a little farther round the other side.
-    void spread_around(RouteGuide& guide, const WorldMap& map, int id, const Vec2* pos, const Vec2* goal) {
+    void spread_around(RouteGuide& guide, const WorldMap& map, int id, const Vec2* pos, const Vec2* goal, const int* ids) {
         going_.clear();
         for (int c = 0; c < (int)claims_.size(); ++c)
             if (around_[claims_[c].robot] == id) going_.push_back(c);
         std::sort(going_.begin(), going_.end(), [&](int a, int b) {
-            return claims_[a].entry != claims_[b].entry ? claims_[a].entry < claims_[b].entry : claims_[a].robot < claims_[b].robot;
+            return claims_[a].entry != claims_[b].entry ? claims_[a].entry < claims_[b].entry : before(ids, claims_[a], claims_[b]);
         });
         int taking[2] = {0, 0};
         for (int c : going_) {

@@ -172,12 +172,25 @@ TEST_CASE("passages: a robot that arrives after the other is out goes on; one in
     // Nearer, robot 1 would meet it inside, and waits.
     Turns meets = arbitrate(map, {{0, 0.3}, {0, 0.7}}, {{0, 0.9}, {0, -0.9}});
     CHECK(meets.wait == std::vector<char>{kGoOn, kWait});
-    // Both in the passage, head-on: the lower index goes on, the other backs out to its own side.
-    Turns inside = arbitrate(map, {{0, 0.15}, {0, -0.15}}, {{0, -0.9}, {0, 0.9}});
+    // Both in the passage, head-on, as deep: the lower index goes on, the other backs out to its
+    // own side.
+    const std::vector<Vec2> both{{0, 0.15}, {0, -0.15}}, ends{{0, -0.9}, {0, 0.9}};
+    Turns inside = arbitrate(map, both, ends);
     CHECK(inside.wait[0] == kGoOn);
     REQUIRE(inside.wait[1] == kWait);
     CHECK(inside.point[1].y < -0.45);
     check_waiting_point(map, inside.point[1]);
+    // Given ids, the lower id goes on whatever the order the robots are listed in (a robot that
+    // plans for itself lists itself first); a robot without an id (-1) after one with.
+    RouteGuide guide;
+    PassageControl pc;
+    const std::vector<char> moving{0, 0};
+    std::vector<char> wait;
+    std::vector<Vec2> point;
+    for (const std::vector<int>& ids : {std::vector<int>{7, 3}, std::vector<int>{-1, 3}}) {
+        pc.arbitrate(guide, map, 2, both.data(), ends.data(), moving.data(), wait, point, ids.data());
+        CHECK(wait == std::vector<char>{kWait, kGoOn});
+    }
     // Both in it, one just inside its mouth: the one with less of the passage ahead goes on,
     // whatever its index (a robot passing the mouth on its way around once took the corridor
     // from one halfway through).
@@ -301,6 +314,25 @@ TEST_CASE("planner: with take_turns a waiting robot is given its waiting point a
             CHECK(told.y < 0.5);  // heading through: its goal or a subgoal on the way
         }
     }
+}
+
+TEST_CASE("planner: plan_robot takes the team plan's turns when the neighbours' ids are given") {
+    // Head-on in the corridor, as deep: a tie, which the lower id wins.
+    ModelConfig c = tiny_config();
+    World world(corridor_map(0.44, 0.4));
+    world.add_agent({0, 0.15}, {0, -0.9});  // id 0
+    world.add_agent({0, -0.15}, {0, 0.9});  // id 1
+    DiffusionPlanner team(MadbpModel(c, 1), 2);
+    team.plan(world);
+    REQUIRE(team.last_waiting() == std::vector<char>{kGoOn, kWait});
+    // Robot 1 planning for itself lists itself first: with robot 0's id it waits, as in the
+    // team's plan; without it (an unknown id ranks after a known one) it would go on.
+    DiffusionPlanner own(MadbpModel(c, 1), 2);
+    std::vector<Vec2> window;
+    own.plan_robot(world.map(), 1, {0, -0.15}, {0, 0.9}, {{{0, 0.15}, {0, -0.9}, {0, 0}, 0}}, window);
+    CHECK(own.last_waiting()[0] == kWait);
+    own.plan_robot(world.map(), 1, {0, -0.15}, {0, 0.9}, {{{0, 0.15}, {0, -0.9}, {0, 0}, -1}}, window);
+    CHECK(own.last_waiting()[0] == kGoOn);
 }
 
 TEST_CASE("planner: a robot going around a corridor is given a subgoal beside it, not its goal") {
