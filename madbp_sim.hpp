@@ -2107,10 +2107,7 @@ public:
             if (seen) continue;
             const Claim* lead = &claims_[a];
             for (size_t b = a + 1; b < claims_.size(); ++b)
-                if (claims_[b].passage == lead->passage &&
-                    (claims_[b].entry < lead->entry ||
-                     (claims_[b].entry == lead->entry && (claims_[b].exit < lead->exit || (claims_[b].exit == lead->exit && before(ids, claims_[b], *lead))))))
-                    lead = &claims_[b];
+                if (claims_[b].passage == lead->passage && before(ids, claims_[b], *lead)) lead = &claims_[b];
             losers_.clear();
             for (size_t b = a; b < claims_.size(); ++b) {
                 if (claims_[b].passage != lead->passage || claims_[b].mouth == lead->mouth) continue;
@@ -2186,24 +2183,25 @@ private:
         return clamp_box(base, lim);
     }
 
-    // Of two claims as near, which comes first: the lower id, robots without one (no ids, or
-    // id < 0) after those with one, then the lower index. By id, a robot planning for itself
-    // (the others in another order) decides as the team's plan does.
+    // Whether claim a comes before b on their passage: the nearer (fewer route cells before
+    // it), then the one with less of it ahead, then the lower id (robots without one, no ids or
+    // id < 0, after those with one), then the lower index. By id, not index, a robot planning for
+    // itself (the others listed in another order) decides as the team's plan does.
     static bool before(const int* ids, const Claim& a, const Claim& b) {
+        if (a.entry != b.entry) return a.entry < b.entry;
+        if (a.exit != b.exit) return a.exit < b.exit;
         auto rank = [&](const Claim& c) { return ids && ids[c.robot] >= 0 ? ids[c.robot] : std::numeric_limits<int>::max(); };
         return rank(a) != rank(b) ? rank(a) < rank(b) : a.robot < b.robot;
     }
-    // Robots going around passage `id` (around_) take its two sides in turn, the claim nearest it
-    // first (then before()): each the side whose way to its goal, plus `spread` per robot already going that
-    // side, is shortest (ties: the shorter way, then side 0). Two robots queueing through the
-    // same gap beside a corridor lose more than one going a little farther round the other side.
+    // Robots going around passage `id` (around_) take its two sides in turn, in before() order
+    // (the nearest first): each the side whose way to its goal, plus `spread` per robot already
+    // going that side, is shortest (ties: the shorter way, then side 0). Two robots queueing
+    // through the same gap beside a corridor lose more than one going a little farther round.
     void spread_around(RouteGuide& guide, const WorldMap& map, int id, const Vec2* pos, const Vec2* goal, const int* ids) {
         going_.clear();
         for (int c = 0; c < (int)claims_.size(); ++c)
             if (around_[claims_[c].robot] == id) going_.push_back(c);
-        std::sort(going_.begin(), going_.end(), [&](int a, int b) {
-            return claims_[a].entry != claims_[b].entry ? claims_[a].entry < claims_[b].entry : before(ids, claims_[a], claims_[b]);
-        });
+        std::sort(going_.begin(), going_.end(), [&](int a, int b) { return before(ids, claims_[a], claims_[b]); });
         int taking[2] = {0, 0};
         for (int c : going_) {
             const int r = claims_[c].robot;
