@@ -2148,10 +2148,7 @@ public:
     // The cells robot i of the last arbitrate() keeps out of (its passage's; none unless it goes around).
     ClosedCells closed_to(int i) const {
         if (i < 0 || i >= (int)around_.size() || around_[i] < 0) return {};
-        if (around_side_[i] >= 0) {
-            const int s = 2 * around_[i] + around_side_[i];
-            return {&side_closed_[s], 1, closed_key_[around_[i]] ^ (0x9E3779B97F4A7C15ull * (uint64_t)(around_side_[i] + 1))};
-        }
+        if (around_side_[i] >= 0) return side_cells(around_[i], around_side_[i]);
         return {&passage_, around_[i], closed_key_[around_[i]]};
     }
 
@@ -2183,6 +2180,10 @@ private:
         return clamp_box(base, lim);
     }
 
+    // The cells a robot going around avoidable passage p on side s keeps out of (close_side).
+    ClosedCells side_cells(int p, int s) const {
+        return {&side_closed_[2 * p + s], 1, closed_key_[p] ^ (0x9E3779B97F4A7C15ull * (uint64_t)(s + 1))};
+    }
     // Whether claim a comes before b on their passage: the nearer (fewer route cells before
     // it), then the one with less of it ahead, then the lower id (robots without one, no ids or
     // id < 0, after those with one), then the lower index. By id, not index, a robot planning for
@@ -2208,8 +2209,7 @@ private:
             double cost[2];
             int steps[2];
             for (int s = 0; s < 2; ++s) {
-                around_side_[r] = s;
-                steps[s] = guide.walk_steps(map, pos[r], goal[r], closed_to(r));
+                steps[s] = guide.walk_steps(map, pos[r], goal[r], side_cells(id, s));
                 cost[s] = steps[s] * guide.cell + params.spread * taking[s];
             }
             int side = cost[1] < cost[0] || (cost[1] == cost[0] && steps[1] < steps[0]) ? 1 : 0;
