@@ -3373,14 +3373,20 @@ public:
     // Decentralised use: one robot plans its own window from what it can know, its position and
     // goal, the other robots' positions and goals as received from them, and the map. `id` seeds
     // the draw (use the robot's id): with the same planner seed, and `others` in the world's agent
-    // order, the window equals the one a cold plan() (a first one, or warm_start 0; plan_robot
-    // always draws cold) gives this robot under neighbourhood planning (K =
-    // neighbourhood size of an automatic or set `neighbours`; the whole team when neighbours = 0).
+    // order, a cold plan_robot's window equals the one a cold plan() (a first one, or warm_start
+    // 0) gives this robot under neighbourhood planning (K = neighbourhood size of an automatic or
+    // set `neighbours`; the whole team when neighbours = 0).
     // `vel` (and Neighbour::vel) is read only by a model with ModelConfig::velocity_context. The
     // ids (the robot's own `id`, and Neighbour::id) break ties in taking turns, so give the ids
     // the team's plan() sees for the same turns, and are read by a model with priority_context.
+    // `step`: the robot's clock in world steps (dt each), for warm starts (SamplerConfig::warm_start):
+    // the plan starts from this planner's last plan_robot windows (its own and the neighbours' it
+    // drew then, by id) when that plan was made at an earlier step and every robot of the scene
+    // has an id and a window there; otherwise, and with step -1 (the default), it draws cold.
+    // Use one planner per robot, as one per world.
     void plan_robot(const WorldMap& map, int id, Vec2 pos, Vec2 goal, const std::vector<Neighbour>& others, std::vector<Vec2>& window,
-                    Vec2 vel = {0, 0}) {
+                    Vec2 vel = {0, 0}, long step = -1) {
+        if (step < -1) throw std::invalid_argument("planner: plan_robot's step must be >= 0, or -1 for a cold draw (got " + std::to_string(step) + ")");
         const int n = 1 + (int)others.size();
         for (int i = 0; i < n; ++i) {
             const Vec2 p = i ? others[i - 1].pos : pos, g = i ? others[i - 1].goal : goal;
@@ -3399,9 +3405,18 @@ public:
             pos_[i] = others[i - 1].pos, goal_[i] = others[i - 1].goal, vel_[i] = others[i - 1].vel, ids_[i] = others[i - 1].id;
         for (int i = 0; i < n; ++i) at_goal_[i] = WorldConfig{}.reached(pos_[i], goal_[i]);
         priority_keys(map, n);
-        now_ = -1;
+        now_ = step;
         plan_scenes(map, n, 1, std::min(K, n), /*local*/ true);
         decode_window(0, pos, window);
+        // What the next plan_robot starts from: the scene's windows, the robot's and its neighbours'.
+        const int m = batch_.count[0];
+        last_ids_.resize(m);
+        last_windows_.resize(m);
+        for (int k = 0; k < m; ++k) {
+            last_ids_[k] = ids_[members_[k]];
+            decode_window(k, pos_[members_[k]], last_windows_[k]);
+        }
+        last_t_ = step;
     }
 
 private:
@@ -3425,8 +3440,8 @@ private:
     RouteGuide guide_;               // route subgoals (ModelConfig::subgoal_distance)
     ConflictWorkspace conflict_;     // guidance and best-of-k (SamplerConfig::guidance, candidates)
     // SamplerConfig::warm_start: the last plan's robots and windows, made at the world's step
-    // last_t_; now_, this plan's step (-1 in plan_robot: it draws cold). One world per planner:
-    // a world whose clock went back draws cold, but two worlds planned in turn would mix.
+    // last_t_ (-1: none); now_, this plan's step (plan_robot's `step`). One world (or robot) per
+    // planner: a clock that went back draws cold, but two worlds planned in turn would mix.
     std::vector<int> last_ids_;
     std::vector<std::vector<Vec2>> last_windows_;
     long last_t_ = -1, now_ = -1;

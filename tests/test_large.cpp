@@ -262,3 +262,55 @@ TEST_CASE("large: circle swaps of up to kMaxCircleAgents robots are valid scenes
     CHECK_THROWS_AS(make_interaction_world("circle", "empty", kMaxCircleAgents + 1, 0, 3.4), std::invalid_argument);
     CHECK_THROWS_AS(make_interaction_world("swap", "empty", kMaxScenarioAgents + 1, 0), std::invalid_argument);
 }
+
+TEST_CASE("large: plan_robot starts from its last windows when given its clock, as the team plan does") {
+    const ModelConfig c = local_config();
+    World world = make_random_world("obstacles", 3, 4, 2.4);
+    auto others_of = [](const World& w, int i, bool reversed) {
+        std::vector<DiffusionPlanner::Neighbour> others;
+        for (int j = 0; j < w.size(); ++j)
+            if (j != i) others.push_back({w.agents()[j].pos, w.agents()[j].goal, w.agents()[j].vel, w.agents()[j].id});
+        if (reversed) std::reverse(others.begin(), others.end());
+        return others;
+    };
+    const World start = world;
+    const int kWarm = 2, kElapsed = 3;  // of the tiny model's 5 DDIM steps; within its window of 7 waypoints
+    DiffusionPlanner team(MadbpModel(c, 2), 9);
+    team.sensing_radius = 0.2;  // every robot alone in its scene: its warm window is its own last one in both
+    team.sampler.warm_start = kWarm;
+    team.plan(world);
+    for (int k = 0; k < kElapsed; ++k) world.step(std::vector<Vec2>(world.size(), Vec2{0.3, -0.2}));
+    const Plan warm_plan = team.plan(world);
+    auto worst = [](const std::vector<Vec2>& a, const std::vector<Vec2>& b) {
+        REQUIRE(a.size() == b.size());
+        double w = 0;
+        for (size_t t = 0; t < a.size(); ++t) w = std::max(w, norm(a[t] - b[t]));
+        return w;
+    };
+    // Robot i's two plans, at step 0 and then at `second_step`, with its neighbours as told.
+    auto robot_plans = [&](int i, double radius, long second_step, bool reversed, int unknown_id = 0) {
+        DiffusionPlanner robot(MadbpModel(c, 2), 9);
+        robot.sensing_radius = radius;
+        robot.sampler.warm_start = kWarm;
+        std::vector<Vec2> window;
+        const Agent &me0 = start.agents()[i], &me = world.agents()[i];
+        robot.plan_robot(start.map(), me0.id, me0.pos, me0.goal, others_of(start, i, reversed), window, me0.vel, 0);
+        auto others = others_of(world, i, reversed);
+        if (unknown_id) others[0].id = -1;
+        robot.plan_robot(world.map(), me.id, me.pos, me.goal, others, window, me.vel, second_step);
+        return window;
+    };
+    for (int i = 0; i < world.size(); ++i) {
+        CHECK(worst(robot_plans(i, 0.2, kElapsed, false), warm_plan.waypoints[i]) < 1e-4);
+        CHECK(worst(robot_plans(i, 0.2, -1, false), warm_plan.waypoints[i]) > 1e-3);  // cold differs: the warm start acts
+        // With its neighbours in the scene, their windows are the ones this robot drew for them, found by id.
+        const auto warm = robot_plans(i, 0, kElapsed, false), cold = robot_plans(i, 0, -1, false);
+        CHECK(worst(robot_plans(i, 0, kElapsed, true), warm) < 1e-6);
+        CHECK(worst(warm, cold) > 1e-5);  // the same computation otherwise: equal to 1e-6 below
+        CHECK(worst(robot_plans(i, 0, 0, false), cold) < 1e-6);        // a clock that did not move on draws cold
+        CHECK(worst(robot_plans(i, 0, kElapsed, false, 1), cold) < 1e-6);     // so does a neighbour without an id
+    }
+    DiffusionPlanner robot(MadbpModel(c, 2), 9);
+    std::vector<Vec2> window;
+    CHECK_THROWS_WITH_AS(robot.plan_robot(world.map(), 0, {0, 0}, {1, 1}, {}, window, {0, 0}, -2), doctest::Contains("step"), std::invalid_argument);
+}

@@ -1,6 +1,8 @@
 // methods_nn.hpp - the learned methods and the training subcommands of the `madbp` tool:
 // `eval --method madbp`, `collect`, `train`. Included by madbp.cpp.
 #pragma once
+#include <chrono>
+#include <map>
 #include <memory>
 #include <mutex>
 
@@ -32,6 +34,7 @@ struct PlannerOptions {
     double spread = madbp::PassageParams{}.spread;      // PassageParams::spread (0: all the shortest way)
     double replan_error = madbp::FollowerConfig{}.replan_error;  // 0: replan only every m steps
     int warm_start = madbp::kDefaultWarmStart;  // SamplerConfig::warm_start (0: off)
+    bool decentralised = false;  // each robot plans for itself (DiffusionPlanner::plan_robot), a planner each
 };
 // "A,M,G": the agent, map and goal weights of the window cost.
 inline void read_cost_weights(const std::string& s, madbp::WindowCost& w) {
@@ -69,11 +72,72 @@ inline PlannerOptions read_planner_options(Args& a) {
     o.spread = a.real("--spread", o.spread, 0, 100);
     o.replan_error = a.real("--replan-error", o.replan_error, 0, 100);
     o.warm_start = (int)a.integer("--warm-start", o.warm_start, 0, 1000);
+    o.decentralised = a.flag("--decentralised");
     return o;
 }
 
-// The planner policy of one episode: a planner on a copy of `model` (planners keep workspaces,
-// so episodes running in parallel must not share one) with the options' sampler settings.
+// A planner on a copy of `model` (planners keep workspaces, so episodes running in parallel must
+// not share one) with the options' sampler and passage settings.
+inline std::unique_ptr<madbp::DiffusionPlanner> make_planner(const madbp::MadbpModel& model, const PlannerOptions& o, uint64_t seed) {
+    auto planner = std::make_unique<madbp::DiffusionPlanner>(model.clone(), seed);
+    if (o.sample_steps > 0) planner->sampler.sample_steps = o.sample_steps;
+    planner->sampler.goal_inpaint = o.goal_inpaint;
+    if (o.goal_reach >= 0) planner->sampler.goal_reach = (float)o.goal_reach;
+    planner->neighbours = o.neighbours;
+    planner->sensing_radius = o.sensing_radius;
+    planner->sampler.guidance = (float)o.guidance;
+    planner->sampler.candidates = o.candidates;
+    planner->sampler.keep_right = (float)o.keep_right;
+    planner->sampler.end_bend = (float)o.end_bend;
+    planner->sampler.cost = o.cost;
+    planner->sampler.warm_start = o.warm_start;
+    planner->take_turns = o.take_turns;
+    planner->passages.params.one_lane_width = o.one_lane_width;
+    planner->passages.params.go_around = o.go_around;
+    planner->passages.params.spread = o.spread;
+    return planner;
+}
+
+// A team whose robots plan for themselves (eval --decentralised): each has its own planner
+// (same seed, as the README's robot loop) and calls plan_robot with every other robot's position,
+// goal, velocity and id, as if received from it, and its clock (the world's step). plan_ms is
+// per robot: the team's plans run one after another here, each robot's on its own computer there.
+class DecentralisedTeam {
+public:
+    DecentralisedTeam(std::shared_ptr<const madbp::MadbpModel> model, PlannerOptions o, uint64_t seed)
+        : model_(std::move(model)), options_(std::move(o)), seed_(seed) {}
+    madbp::Plan plan(const madbp::World& world) {
+        const auto t0 = std::chrono::steady_clock::now();
+        const auto& agents = world.agents();
+        const int n = (int)agents.size();
+        madbp::Plan out;
+        out.ids.resize(n);
+        out.waypoints.resize(n);
+        for (int i = 0; i < n; ++i) {
+            const madbp::Agent& me = agents[i];
+            others_.clear();
+            for (int j = 0; j < n; ++j)
+                if (j != i) others_.push_back({agents[j].pos, agents[j].goal, agents[j].vel, agents[j].id});
+            auto& planner = robots_[me.id];
+            if (!planner) planner = make_planner(*model_, options_, seed_);
+            planner->plan_robot(world.map(), me.id, me.pos, me.goal, others_, out.waypoints[i], me.vel, world.t());
+            out.ids[i] = me.id;
+        }
+        // What one robot pays: the team's plans ran one after another on this core.
+        out.plan_ms = std::chrono::duration<double, std::milli>(std::chrono::steady_clock::now() - t0).count() / std::max(n, 1);
+        return out;
+    }
+
+private:
+    std::shared_ptr<const madbp::MadbpModel> model_;
+    PlannerOptions options_;
+    uint64_t seed_;
+    std::map<int, std::unique_ptr<madbp::DiffusionPlanner>> robots_;  // by id: robots may join and leave
+    std::vector<madbp::DiffusionPlanner::Neighbour> others_;
+};
+
+// The planner policy of one episode: one planner for the team (plan), or one per robot
+// (--decentralised, plan_robot).
 inline madbp::PolicyFactory planner_factory(std::shared_ptr<const madbp::MadbpModel> model, const PlannerOptions& o, const MethodSetup& s) {
     if (o.sample_steps > model->config.diffusion_steps)
         throw std::invalid_argument("--sample-steps: must be <= the model's diffusion steps (" + std::to_string(model->config.diffusion_steps) + ")");
@@ -85,23 +149,11 @@ inline madbp::PolicyFactory planner_factory(std::shared_ptr<const madbp::MadbpMo
     fc.filter.rate = o.filter_rate;
     fc.replan_error = o.replan_error;
     return [model, fc, o](const madbp::World&, uint64_t seed) -> std::unique_ptr<madbp::Policy> {
-        auto planner = std::make_shared<madbp::DiffusionPlanner>(model->clone(), seed);
-        if (o.sample_steps > 0) planner->sampler.sample_steps = o.sample_steps;
-        planner->sampler.goal_inpaint = o.goal_inpaint;
-        if (o.goal_reach >= 0) planner->sampler.goal_reach = (float)o.goal_reach;
-        planner->neighbours = o.neighbours;
-        planner->sensing_radius = o.sensing_radius;
-        planner->sampler.guidance = (float)o.guidance;
-        planner->sampler.candidates = o.candidates;
-        planner->sampler.keep_right = (float)o.keep_right;
-        planner->sampler.end_bend = (float)o.end_bend;
-        planner->sampler.cost = o.cost;
-        planner->sampler.warm_start = o.warm_start;
-        planner->take_turns = o.take_turns;
-        planner->passages.params.one_lane_width = o.one_lane_width;
-        planner->passages.params.go_around = o.go_around;
-        planner->passages.params.spread = o.spread;
-        return std::make_unique<madbp::PlanFollower>([planner](const madbp::World& w) { return planner->plan(w); }, fc);
+        if (o.decentralised)
+            return std::make_unique<madbp::PlanFollower>(
+                [team = std::make_shared<DecentralisedTeam>(model, o, seed)](const madbp::World& w) { return team->plan(w); }, fc);
+        return std::make_unique<madbp::PlanFollower>(
+            [planner = std::shared_ptr<madbp::DiffusionPlanner>(make_planner(*model, o, seed))](const madbp::World& w) { return planner->plan(w); }, fc);
     };
 }
 
@@ -148,7 +200,9 @@ inline void register_nn_methods(std::vector<Method>& m) {
                  "                    default 1), --spread S (robots going around one take its two sides in turn:\n"
                  "                    each the side whose way, plus S per robot already going that side, is\n"
                  "                    shortest; default 0.3, 0 = all the shortest way), --one-lane-width W (passages\n"
-                 "                    narrower than W wall to wall are one-lane; default 0.54)",
+                 "                    narrower than W wall to wall are one-lane; default 0.54), --decentralised\n"
+                 "                    (each robot plans for itself with plan_robot, its own planner and what the\n"
+                 "                    others tell it: positions, goals, velocities, ids; warm-started like the team's)",
                  [](Args& a, const MethodSetup& s) { return madbp_method(read_planner_options(a), s); }});
 }
 
