@@ -92,6 +92,7 @@
 //        planner samples with kDefaultEndBend. SamplerConfig::warm_start: a plan runs the last W
 //        DDIM steps from each robot's last window shifted to now (sample_windows' `warm`), and
 //        the planner keeps its last windows by id; it samples with kDefaultWarmStart.
+//        plan_robot takes the robot's clock (`step`) and warm-starts from its own last windows.
 //   0.1  neural-network core, safetensors checkpoints, MA-DBP model, DDIM sampler, planner.
 
 #ifndef MADBP_HPP
