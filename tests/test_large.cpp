@@ -1,9 +1,10 @@
 // Deploy large (issue 13): the Local scene frame, route subgoals, automatic neighbourhood
 // planning and the decentralised per-robot plan (madbp.hpp "model inputs" and DiffusionPlanner;
-// RouteGuide in madbp_sim.hpp Section 12).
+// RouteGuide in madbp_sim.hpp Section 12; eval --decentralised in tool/methods_nn.hpp).
 #include <doctest/doctest.h>
 
 #include "madbp_train.hpp"
+#include "methods.hpp"  // the tool's eval --decentralised (DecentralisedTeam)
 #include "tiny_model.hpp"
 
 #include "alloc_counter_api.hpp"
@@ -31,6 +32,14 @@ World shifted_world(Vec2 shift) {
     const Vec2 starts[5] = {{-0.53, -0.47}, {0.51, 0.49}, {0.03, 0.91}, {-0.89, 0.02}, {0.83, -0.71}};
     const Vec2 goals[5] = {{0.61, 0.58}, {-0.62, -0.57}, {0.01, -0.93}, {1.52, 0.23}, {-0.81, 0.79}};
     for (int i = 0; i < 5; ++i) w.add_agent(starts[i] + shift, goals[i] + shift);
+    return w;
+}
+
+// The largest distance between two windows' waypoints at the same step.
+double max_gap(const std::vector<Vec2>& a, const std::vector<Vec2>& b) {
+    REQUIRE(a.size() == b.size());
+    double w = 0;
+    for (size_t t = 0; t < a.size(); ++t) w = std::max(w, norm(a[t] - b[t]));
     return w;
 }
 
@@ -219,10 +228,7 @@ TEST_CASE("large: a robot planning for itself gets the window the team plan give
             std::vector<Vec2> window;
             const Agent& me = world.agents()[i];
             robot.plan_robot(world.map(), me.id, me.pos, me.goal, others, window, me.vel);
-            REQUIRE(window.size() == plan.waypoints[i].size());
-            double worst = 0;
-            for (size_t t = 0; t < window.size(); ++t) worst = std::max(worst, norm(window[t] - plan.waypoints[i][t]));
-            CHECK(worst < 1e-4);  // one scene alone vs in a batch: the same numbers up to float summation order
+            CHECK(max_gap(window, plan.waypoints[i]) < 1e-4);  // one scene alone vs in a batch: the same numbers up to float summation order
         }
     }
     DiffusionPlanner robot(MadbpModel(local_config(), 2), 9);
@@ -281,12 +287,6 @@ TEST_CASE("large: plan_robot starts from its last windows when given its clock, 
     team.plan(world);
     for (int k = 0; k < kElapsed; ++k) world.step(std::vector<Vec2>(world.size(), Vec2{0.3, -0.2}));
     const Plan warm_plan = team.plan(world);
-    auto worst = [](const std::vector<Vec2>& a, const std::vector<Vec2>& b) {
-        REQUIRE(a.size() == b.size());
-        double w = 0;
-        for (size_t t = 0; t < a.size(); ++t) w = std::max(w, norm(a[t] - b[t]));
-        return w;
-    };
     // Robot i's two plans, at step 0 and then at `second_step`, with its neighbours as told.
     auto robot_plans = [&](int i, double radius, long second_step, bool reversed, int unknown_id = 0) {
         DiffusionPlanner robot(MadbpModel(c, 2), 9);
@@ -301,16 +301,41 @@ TEST_CASE("large: plan_robot starts from its last windows when given its clock, 
         return window;
     };
     for (int i = 0; i < world.size(); ++i) {
-        CHECK(worst(robot_plans(i, 0.2, kElapsed, false), warm_plan.waypoints[i]) < 1e-4);
-        CHECK(worst(robot_plans(i, 0.2, -1, false), warm_plan.waypoints[i]) > 1e-3);  // cold differs: the warm start acts
+        CHECK(max_gap(robot_plans(i, 0.2, kElapsed, false), warm_plan.waypoints[i]) < 1e-4);
+        CHECK(max_gap(robot_plans(i, 0.2, -1, false), warm_plan.waypoints[i]) > 1e-3);  // cold differs: the warm start acts
         // With its neighbours in the scene, their windows are the ones this robot drew for them, found by id.
         const auto warm = robot_plans(i, 0, kElapsed, false), cold = robot_plans(i, 0, -1, false);
-        CHECK(worst(robot_plans(i, 0, kElapsed, true), warm) < 1e-6);
-        CHECK(worst(warm, cold) > 1e-5);  // the same computation otherwise: equal to 1e-6 below
-        CHECK(worst(robot_plans(i, 0, 0, false), cold) < 1e-6);        // a clock that did not move on draws cold
-        CHECK(worst(robot_plans(i, 0, kElapsed, false, 1), cold) < 1e-6);     // so does a neighbour without an id
+        CHECK(max_gap(robot_plans(i, 0, kElapsed, true), warm) < 1e-6);
+        CHECK(max_gap(warm, cold) > 1e-5);  // the same computation otherwise: equal to 1e-6 below
+        CHECK(max_gap(robot_plans(i, 0, 0, false), cold) < 1e-6);        // a clock that did not move on draws cold
+        CHECK(max_gap(robot_plans(i, 0, kElapsed, false, 1), cold) < 1e-6);     // so does a neighbour without an id
     }
     DiffusionPlanner robot(MadbpModel(c, 2), 9);
     std::vector<Vec2> window;
     CHECK_THROWS_WITH_AS(robot.plan_robot(world.map(), 0, {0, 0}, {1, 1}, {}, window, {0, 0}, -2), doctest::Contains("step"), std::invalid_argument);
+}
+
+TEST_CASE("large: eval --decentralised plans each robot with plan_robot: first as the team's neighbourhood plan, then warm") {
+    const ModelConfig c = local_config();
+    auto model = std::make_shared<const MadbpModel>(c, 2);
+    madbp_cli::PlannerOptions options;
+    options.warm_start = 2;  // of the tiny model's 5 DDIM steps
+    World world = make_random_world("obstacles", 3, 4, 2.4);  // a larger world: the team plans a scene per robot
+    const World start = world;
+    madbp_cli::DecentralisedTeam robots(model, options, 9);
+    const auto team = madbp_cli::make_planner(*model, options, 9);
+    const Plan first = robots.plan(world), team_first = team->plan(world);
+    REQUIRE(first.ids == team_first.ids);
+    for (int i = 0; i < world.size(); ++i) CHECK(max_gap(first.waypoints[i], team_first.waypoints[i]) < 1e-4);
+    // Three steps on, each robot starts from its last windows: the plan differs from a cold team's.
+    for (int k = 0; k < 3; ++k) world.step(std::vector<Vec2>(world.size(), Vec2{0.3, -0.2}));
+    const Plan second = robots.plan(world);
+    madbp_cli::PlannerOptions cold_options = options;
+    cold_options.warm_start = 0;
+    madbp_cli::DecentralisedTeam cold(model, cold_options, 9);
+    cold.plan(start);
+    const Plan cold_second = cold.plan(world);
+    double gap = 0;
+    for (int i = 0; i < world.size(); ++i) gap = std::max(gap, max_gap(second.waypoints[i], cold_second.waypoints[i]));
+    CHECK(gap > 1e-5);
 }
