@@ -3408,8 +3408,7 @@ public:
         priority_keys(map, n);
         now_ = step;
         plan_scenes(map, n, 1, std::min(K, n), /*local*/ true);
-        decode_window(0, pos, window);
-        // What the next plan_robot starts from: the scene's windows, the robot's and its neighbours'.
+        // The scene's windows, the robot's (slot 0) and its neighbours': the next plan_robot starts from them.
         const int m = batch_.count[0];
         last_ids_.resize(m);
         last_windows_.resize(m);
@@ -3418,6 +3417,7 @@ public:
             decode_window(k, pos_[members_[k]], last_windows_[k]);
         }
         last_t_ = step;
+        window.assign(last_windows_[0].begin(), last_windows_[0].end());
     }
 
 private:
