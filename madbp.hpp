@@ -71,7 +71,8 @@
 //   5 the model: MadbpModel, save_model, load_model                                      [5, 11]
 //   6 diffusion: NoiseSchedule, SamplerConfig, sample_windows (DDIM with inpainting,
 //     guidance, best-of-k, keep-right, end bend, warm start)                            [6]
-//   7 planner: DiffusionPlanner (plan, neighbourhoods, take_turns, plan_robot)           [8]
+//   7 planner: DiffusionPlanner (plan, neighbourhoods, take_turns, passage_replan,
+//     plan_robot)                                                                       [8]
 //
 // Changelog
 //   0.2  one FilmUNet / ContextEncoder / TrajectoryProcessor; one world-to-model encoder;
@@ -93,6 +94,8 @@
 //        DDIM steps from each robot's last window shifted to now (sample_windows' `warm`), and
 //        the planner keeps its last windows by id; it samples with kDefaultWarmStart.
 //        plan_robot takes the robot's clock (`step`) and warm-starts from its own last windows.
+//        DiffusionPlanner::passage_replan (kDefaultPassageReplan): while robots may meet in a
+//        one-lane passage, a plan asks to be replaced after 4 steps (Plan::replan_after).
 //   0.1  neural-network core, safetensors checkpoints, MA-DBP model, DDIM sampler, planner.
 
 #ifndef MADBP_HPP
@@ -2729,6 +2732,9 @@ constexpr float kDefaultEndBend = 1.f;
 // robot's last window; the bare sampler's default is 0): tuned on seeds 1000-1299
 // (docs/experiments.md, "Warm-started windows").
 constexpr int kDefaultWarmStart = 5;
+// How soon a plan asks to be replaced while robots may meet in a one-lane passage
+// (DiffusionPlanner::passage_replan): tuned on seeds 1000-1199 (docs/experiments.md, "Turns on time").
+constexpr int kDefaultPassageReplan = 4;
 
 // The map's clearance (static_clearance: distance to the nearest obstacle or wall surface,
 // world units, negative inside) sampled at the nodes of a square grid of spacing `cell` over the
@@ -3287,6 +3293,16 @@ public:
     // route's subgoal with the corridor closed. false: every robot heads for its goal or route subgoal.
     bool take_turns = true;
     PassageControl passages;
+    // Turns are decided when a plan is made. While robots may meet in a passage (claims on it from
+    // two mouths, or a robot waits), the plan asks to be replaced after this many steps
+    // (Plan::replan_after), so that the waiting go as soon as the way is clear (0: never asks).
+    int passage_replan = kDefaultPassageReplan;
+    // What the last plan (or plan_robot) asks: passage_replan while robots may meet in a passage, else 0.
+    int replan_after() const {
+        if (passage_replan <= 0 || !take_turns) return 0;
+        const bool waits = std::find(waiting_.begin(), waiting_.end(), (char)PassageControl::kWait) != waiting_.end();
+        return waits || passages.contested() ? passage_replan : 0;
+    }
 
     explicit DiffusionPlanner(MadbpModel model, uint64_t seed = 0)
         : model_(std::move(model)), schedule_(model_.config.diffusion_steps), rng_(seed) {
@@ -3368,6 +3384,7 @@ public:
         last_windows_.resize(n);
         for (int i = 0; i < n; ++i) last_windows_[i] = out.waypoints[i];
         last_t_ = now_;
+        out.replan_after = replan_after();
         out.plan_ms = std::chrono::duration<double, std::milli>(std::chrono::steady_clock::now() - t0).count();
     }
 

@@ -35,6 +35,9 @@
 //        either side (detail::surface_groups), so narrow gaps around a corridor's ends no longer
 //        hide it. Robots going around a corridor take its two sides in turn (PassageParams::spread);
 //        RouteGuide::walk_steps.
+//        Plan::replan_after: a planner may ask PlanFollower for its next plan sooner.
+//        PassageParams::spare (was a fixed 0.25; now 0) and wait_back 0.45 (was 0.3): the waiting
+//        stand farther out and go sooner; PassageControl::contested.
 //   0.1  world, maps, controllers.
 
 #ifndef MADBP_SIM_HPP
@@ -1394,6 +1397,7 @@ struct Plan {
     std::vector<int> ids;
     std::vector<std::vector<Vec2>> waypoints;
     double plan_ms = 0;
+    int replan_after = 0;  // > 0: the planner asks for the next plan after this many steps
 };
 // Any planner: a function from the current world to a plan for all its present agents.
 using Planner = std::function<Plan(const World&)>;
@@ -1580,6 +1584,7 @@ private:
         if (plans_ == 0 || world.t() < plan_t0_ || world.t() - plan_t0_ >= cfg_.replan_every) return true;
         if ((int)plan_.ids.size() != world.size()) return true;
         const int k = world.t() - plan_t0_;
+        if (plan_.replan_after > 0 && k >= plan_.replan_after) return true;
         // Early (replan_error), but not before half the interval: a planner whose windows cannot
         // be followed costs at most twice the plans, not one every step.
         const bool early = cfg_.replan_error > 0 && k >= (cfg_.replan_every + 1) / 2;
@@ -2021,7 +2026,8 @@ struct PassageParams {
     double one_lane_width = 0.54;  // passages narrower than this, wall to wall, are one-lane (world units)
     double free_clear = 0.12;      // a robot's centre fits where the clearance is >= this (radius + 0.02)
     double lookahead = 1.2;        // a robot claims the first passage within this distance along its route
-    double wait_back = 0.3;        // the nearest waiting robot waits this far out from its mouth,
+    double spare = 0;              // a claim from another mouth waits if it would enter before a holder is this far out
+    double wait_back = 0.45;       // the nearest waiting robot waits this far out from its mouth,
     double queue_spacing = 0.3;    // each next one this much farther,
     double wait_side = 0.25;       // and this far to the right of the way in
     double min_length = 0.5;       // only passages whose mouths are this far apart (corridors, not doorways);
@@ -2062,7 +2068,7 @@ public:
     int arbitrate(RouteGuide& guide, const WorldMap& map, int n, const Vec2* pos, const Vec2* goal, const char* at_goal,
                   std::vector<char>& wait, std::vector<Vec2>& point, const int* ids = nullptr) {
         const PassageParams& p = params;
-        const double lengths[] = {p.one_lane_width, p.free_clear, p.lookahead, p.wait_back, p.queue_spacing, p.wait_side, p.min_length, p.bypass, p.spread};
+        const double lengths[] = {p.one_lane_width, p.free_clear, p.lookahead, p.wait_back, p.queue_spacing, p.wait_side, p.min_length, p.bypass, p.spread, p.spare};
         for (double v : lengths)
             if (!(v >= 0) || !std::isfinite(v)) throw std::invalid_argument("PassageParams: every length must be a finite number >= 0 (got " + number_text(v) + ")");
         const std::vector<int>& cell_passage = passage(guide, map);
@@ -2097,9 +2103,9 @@ public:
             }
             claims_.push_back(c);
         }
-        // A claim by another mouth waits when it would enter before a claim by the holder's mouth
-        // is out, with room for the two to clear each other (2 robot radii + 0.05).
-        const int clear_cells = (int)std::ceil(0.25 / grid.cell);
+        // A claim from another mouth waits when it would enter before a claim from the holder's mouth
+        // is `spare` out (route cells, as if both moved alike; the safety filter keeps them apart).
+        const int clear_cells = (int)std::ceil(p.spare / grid.cell);
         int waiting = 0;
         for (size_t a = 0; a < claims_.size(); ++a) {
             bool seen = false;  // the first claim on each passage decides for all of its claims
@@ -2144,6 +2150,13 @@ public:
             }
         }
         return waiting;
+    }
+    // Whether the last arbitrate() saw claims on one passage from two of its mouths (robots that may meet in it).
+    bool contested() const {
+        for (size_t a = 0; a < claims_.size(); ++a)
+            for (size_t b = 0; b < a; ++b)
+                if (claims_[a].passage == claims_[b].passage && claims_[a].mouth != claims_[b].mouth) return true;
+        return false;
     }
     // The cells robot i of the last arbitrate() keeps out of (its passage's; none unless it goes around).
     ClosedCells closed_to(int i) const {

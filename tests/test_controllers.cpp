@@ -234,6 +234,20 @@ TEST_CASE("PlanFollower: replans every m steps and on joins and leaves; bad plan
     CHECK_THROWS_AS(PlanFollower(LinePlanner{}, zero), std::invalid_argument);
 }
 
+TEST_CASE("PlanFollower: a plan's replan_after brings the next plan forward; 0 leaves replan_every") {
+    const World world = make_random_world("empty", 2, 1);
+    for (int after : {0, 3}) {
+        FollowerConfig fc;
+        fc.replan_every = 8;
+        fc.replan_error = 0;
+        std::vector<long> planned_at;
+        PlanFollower follower([&](const World& w) { planned_at.push_back(w.t()); Plan p = LinePlanner{}(w); p.replan_after = after; return p; }, fc);
+        World w = world;
+        for (int t = 0; t < 10; ++t) w.step(follower.act(w));
+        CHECK(planned_at == (after ? std::vector<long>{0, 3, 6, 9} : std::vector<long>{0, 8}));
+    }
+}
+
 TEST_CASE("PlanFollower: replans early when a robot is farther than replan_error from its plan's waypoint for now") {
     CHECK(FollowerConfig{}.replan_error == 0.15);
     // Plans that put every waypoint 0.5 to the side of where each robot is when planned: no robot

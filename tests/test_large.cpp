@@ -339,3 +339,20 @@ TEST_CASE("large: eval --decentralised plans each robot with plan_robot: first a
     for (int i = 0; i < world.size(); ++i) gap = std::max(gap, max_gap(second.waypoints[i], cold_second.waypoints[i]));
     CHECK(gap > 1e-5);
 }
+
+TEST_CASE("large: eval --decentralised asks for the team's next plan when a robot's planner asks (one waits at a passage)") {
+    // A wall across the world with a one-lane corridor through its middle; two robots head-on.
+    WorldMap map;
+    const double h = map.half_size;
+    map.boxes = {{{-h, -0.05}, {-0.22, 0.05}}, {{0.22, -0.05}, {h, 0.05}}, {{-0.32, -0.4}, {-0.22, 0.4}}, {{0.22, -0.4}, {0.32, 0.4}}};
+    World world(map);
+    world.add_agent({0, -0.7}, {0, 0.9});
+    world.add_agent({0, 0.9}, {0, -0.9});
+    auto model = std::make_shared<const MadbpModel>(local_config(), 2);
+    for (int after : {0, 3}) {
+        madbp_cli::PlannerOptions options;
+        options.passage_replan = after;
+        madbp_cli::DecentralisedTeam robots(model, options, 9);
+        CHECK(robots.plan(world).replan_after == after);
+    }
+}

@@ -169,8 +169,8 @@ TEST_CASE("passages: a robot that arrives after the other is out goes on; one in
     // Robot 0 is near the top end on its way up: robot 1 far above arrives after it is out.
     Turns late = arbitrate(map, {{0, 0.3}, {0, 1.05}}, {{0, 0.9}, {0, -0.9}});
     CHECK(late.wait == std::vector<char>{kGoOn, kGoOn});
-    // Nearer, robot 1 would meet it inside, and waits.
-    Turns meets = arbitrate(map, {{0, 0.3}, {0, 0.7}}, {{0, 0.9}, {0, -0.9}});
+    // With robot 0 deeper in, robot 1 would meet it inside, and waits.
+    Turns meets = arbitrate(map, {{0, 0.0}, {0, 0.7}}, {{0, 0.9}, {0, -0.9}});
     CHECK(meets.wait == std::vector<char>{kGoOn, kWait});
     // Both in the passage, head-on, as deep: the lower index goes on, the other backs out to its
     // own side.
@@ -277,6 +277,24 @@ TEST_CASE("passages: robots going around a corridor take its two sides in turn; 
     }
 }
 
+TEST_CASE("passages: spare, the room a claim from the other mouth leaves the holder; contested, claims from two mouths") {
+    const WorldMap map = corridor_map(0.44, 0.4);
+    // Robot 0 is near the top end on its way up; robot 1 comes down from 1.05.
+    const std::vector<Vec2> pos{{0, 0.3}, {0, 1.05}}, goal{{0, 0.9}, {0, -0.9}};
+    PassageControl pc;
+    CHECK(arbitrate(map, pos, goal, {}, &pc).wait == std::vector<char>{kGoOn, kGoOn});
+    CHECK(pc.contested());
+    pc.params.spare = 1.0;  // robot 1 would enter before robot 0 is 1.0 out: it waits
+    CHECK(arbitrate(map, pos, goal, {}, &pc).wait == std::vector<char>{kGoOn, kWait});
+    pc.params.spare = 0;
+    CHECK(arbitrate(map, pos, goal, {}, &pc).wait == std::vector<char>{kGoOn, kGoOn});
+    // Going the same way, or robot 1 parked on its goal: no claims from two mouths.
+    arbitrate(map, pos, {{0, 0.9}, {0, 1.05}}, {0, 1}, &pc);
+    CHECK_FALSE(pc.contested());
+    arbitrate(map, {{0, -0.7}, {0.1, -1.0}}, {{0, 0.9}, {0.1, 0.8}}, {}, &pc);
+    CHECK_FALSE(pc.contested());
+}
+
 TEST_CASE("passages: bad parameters are named") {
     RouteGuide guide;
     PassageControl pc;
@@ -290,6 +308,9 @@ TEST_CASE("passages: bad parameters are named") {
     CHECK_THROWS_AS(pc.arbitrate(guide, WorldMap{}, 1, pos.data(), goal.data(), at.data(), wait, point), std::invalid_argument);
     pc.params.lookahead = 1.2;
     pc.params.spread = -0.3;
+    CHECK_THROWS_AS(pc.arbitrate(guide, WorldMap{}, 1, pos.data(), goal.data(), at.data(), wait, point), std::invalid_argument);
+    pc.params.spread = 0.3;
+    pc.params.spare = -0.1;
     CHECK_THROWS_AS(pc.arbitrate(guide, WorldMap{}, 1, pos.data(), goal.data(), at.data(), wait, point), std::invalid_argument);
 }
 
@@ -314,6 +335,27 @@ TEST_CASE("planner: with take_turns a waiting robot is given its waiting point a
             CHECK(told.y < 0.5);  // heading through: its goal or a subgoal on the way
         }
     }
+}
+
+TEST_CASE("planner: while robots may meet in a passage the plan asks to be replaced after passage_replan steps") {
+    ModelConfig c = tiny_config();
+    World head_on(corridor_map(0.44, 0.4));  // robot 1 waits
+    head_on.add_agent({0, -0.7}, {0, 0.9});
+    head_on.add_agent({0, 0.9}, {0, -0.9});
+    World apart(corridor_map(0.44, 0.4));  // both on the lower side, going right: no passage on their way
+    apart.add_agent({-0.8, -0.7}, {0.8, -0.7});
+    apart.add_agent({-0.8, -1.0}, {0.8, -1.0});
+    DiffusionPlanner planner(MadbpModel(c, 1), 2);
+    CHECK(planner.passage_replan == kDefaultPassageReplan);
+    planner.passage_replan = 3;
+    CHECK(planner.plan(head_on).replan_after == 3);
+    CHECK(planner.replan_after() == 3);
+    CHECK(planner.plan(apart).replan_after == 0);
+    planner.passage_replan = 0;
+    CHECK(planner.plan(head_on).replan_after == 0);
+    planner.passage_replan = 3;
+    planner.take_turns = false;
+    CHECK(planner.plan(head_on).replan_after == 0);
 }
 
 TEST_CASE("planner: plan_robot takes the team plan's turns when the neighbours' ids are given") {

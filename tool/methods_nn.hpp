@@ -32,6 +32,8 @@ struct PlannerOptions {
     double one_lane_width = madbp::PassageParams{}.one_lane_width;
     bool go_around = madbp::PassageParams{}.go_around;  // PassageParams::go_around
     double spread = madbp::PassageParams{}.spread;      // PassageParams::spread (0: all the shortest way)
+    double wait_back = madbp::PassageParams{}.wait_back, wait_side = madbp::PassageParams{}.wait_side, queue_spacing = madbp::PassageParams{}.queue_spacing, spare = madbp::PassageParams{}.spare;
+    int passage_replan = madbp::kDefaultPassageReplan;
     double replan_error = madbp::FollowerConfig{}.replan_error;  // 0: replan only every m steps
     int warm_start = madbp::kDefaultWarmStart;  // SamplerConfig::warm_start (0: off)
     bool decentralised = false;  // each robot plans for itself (DiffusionPlanner::plan_robot), a planner each
@@ -70,6 +72,11 @@ inline PlannerOptions read_planner_options(Args& a) {
     o.one_lane_width = a.real("--one-lane-width", o.one_lane_width, 0, 100);
     o.go_around = a.integer("--go-around", o.go_around ? 1 : 0, 0, 1) != 0;
     o.spread = a.real("--spread", o.spread, 0, 100);
+    o.wait_back = a.real("--wait-back", o.wait_back, 0, 100);
+    o.wait_side = a.real("--wait-side", o.wait_side, 0, 100);
+    o.queue_spacing = a.real("--queue-spacing", o.queue_spacing, 0, 100);
+    o.spare = a.real("--spare", o.spare, 0, 100);
+    o.passage_replan = (int)a.integer("--passage-replan", o.passage_replan, 0, 1000);
     o.replan_error = a.real("--replan-error", o.replan_error, 0, 100);
     o.warm_start = (int)a.integer("--warm-start", o.warm_start, 0, 1000);
     o.decentralised = a.flag("--decentralised");
@@ -95,6 +102,11 @@ inline std::unique_ptr<madbp::DiffusionPlanner> make_planner(const madbp::MadbpM
     planner->passages.params.one_lane_width = o.one_lane_width;
     planner->passages.params.go_around = o.go_around;
     planner->passages.params.spread = o.spread;
+    planner->passages.params.wait_back = o.wait_back;
+    planner->passages.params.wait_side = o.wait_side;
+    planner->passages.params.queue_spacing = o.queue_spacing;
+    planner->passages.params.spare = o.spare;
+    planner->passage_replan = o.passage_replan;
     return planner;
 }
 
@@ -122,6 +134,9 @@ public:
             if (!planner) planner = make_planner(*model_, options_, seed_);
             planner->plan_robot(world.map(), me.id, me.pos, me.goal, others_, out.waypoints[i], me.vel, world.t());
             out.ids[i] = me.id;
+            // The team replans when the first robot asks to (one waits at a passage in its scene).
+            const int after = planner->replan_after();
+            if (after > 0 && (out.replan_after == 0 || after < out.replan_after)) out.replan_after = after;
         }
         // What one robot pays: the team's plans ran one after another on this core.
         out.plan_ms = std::chrono::duration<double, std::milli>(std::chrono::steady_clock::now() - t0).count() / std::max(n, 1);
@@ -200,7 +215,12 @@ inline void register_nn_methods(std::vector<Method>& m) {
                  "                    default 1), --spread S (robots going around one take its two sides in turn:\n"
                  "                    each the side whose way, plus S per robot already going that side, is\n"
                  "                    shortest; default 0.3, 0 = all the shortest way), --one-lane-width W (passages\n"
-                 "                    narrower than W wall to wall are one-lane; default 0.54), --decentralised\n"
+                 "                    narrower than W wall to wall are one-lane; default 0.54), --wait-back D,\n"
+                 "                    --queue-spacing D, --wait-side D (the first waiting robot waits D out from the\n"
+                 "                    mouth, each next D farther, D to the right; defaults 0.45, 0.3, 0.25), --spare D\n"
+                 "                    (one from the other mouth waits unless it would enter after those inside are D\n"
+                 "                    out; default 0), --passage-replan N (while robots may meet in a passage, replan\n"
+                 "                    after N steps, so the waiting go when it is clear; default 4, 0 = off), --decentralised\n"
                  "                    (each robot plans for itself with plan_robot, its own planner and what the\n"
                  "                    others tell it: positions, goals, velocities, ids; warm-started like the team's)",
                  [](Args& a, const MethodSetup& s) { return madbp_method(read_planner_options(a), s); }});
