@@ -32,8 +32,10 @@ struct PlannerOptions {
     double one_lane_width = madbp::PassageParams{}.one_lane_width;
     bool go_around = madbp::PassageParams{}.go_around;  // PassageParams::go_around
     double spread = madbp::PassageParams{}.spread;      // PassageParams::spread (0: all the shortest way)
-    double wait_back = madbp::PassageParams{}.wait_back, wait_side = madbp::PassageParams{}.wait_side, queue_spacing = madbp::PassageParams{}.queue_spacing, spare = madbp::PassageParams{}.spare;
-    int passage_replan = madbp::kDefaultPassageReplan;
+    // Where robots wait at a one-lane passage, and when they go (PassageParams).
+    double wait_back = madbp::PassageParams{}.wait_back, queue_spacing = madbp::PassageParams{}.queue_spacing;
+    double wait_side = madbp::PassageParams{}.wait_side, spare = madbp::PassageParams{}.spare;
+    int passage_replan = madbp::kDefaultPassageReplan;  // DiffusionPlanner::passage_replan (0: off)
     double replan_error = madbp::FollowerConfig{}.replan_error;  // 0: replan only every m steps
     int warm_start = madbp::kDefaultWarmStart;  // SamplerConfig::warm_start (0: off)
     bool decentralised = false;  // each robot plans for itself (DiffusionPlanner::plan_robot), a planner each
