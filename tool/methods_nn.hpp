@@ -29,12 +29,7 @@ struct PlannerOptions {
     double lookahead = madbp::FollowerConfig{}.lookahead;  // 0: track the waypoint planned for this step
     double filter_rate = madbp::FollowerConfig{}.filter.rate;  // the safety filter's barrier rate, 1/s
     bool take_turns = true;    // DiffusionPlanner::take_turns (one-lane passages)
-    double one_lane_width = madbp::PassageParams{}.one_lane_width;
-    bool go_around = madbp::PassageParams{}.go_around;  // PassageParams::go_around
-    double spread = madbp::PassageParams{}.spread;      // PassageParams::spread (0: all the shortest way)
-    // Where robots wait at a one-lane passage, and when they go (PassageParams).
-    double wait_back = madbp::PassageParams{}.wait_back, queue_spacing = madbp::PassageParams{}.queue_spacing;
-    double wait_side = madbp::PassageParams{}.wait_side, spare = madbp::PassageParams{}.spare;
+    madbp::PassageParams passage;  // which passages, who waits where, when they go, going around
     int passage_replan = madbp::kDefaultPassageReplan;  // DiffusionPlanner::passage_replan (0: off)
     double replan_error = madbp::FollowerConfig{}.replan_error;  // 0: replan only every m steps
     int warm_start = madbp::kDefaultWarmStart;  // SamplerConfig::warm_start (0: off)
@@ -71,13 +66,14 @@ inline PlannerOptions read_planner_options(Args& a) {
     o.lookahead = a.real("--lookahead", o.lookahead, 0, madbp::kMaxLookahead);
     o.filter_rate = a.real("--filter-rate", o.filter_rate, 0.01, 9.99);  // < 1/dt (PlanFollower checks it against the world's dt)
     o.take_turns = a.integer("--take-turns", o.take_turns ? 1 : 0, 0, 1) != 0;
-    o.one_lane_width = a.real("--one-lane-width", o.one_lane_width, 0, 100);
-    o.go_around = a.integer("--go-around", o.go_around ? 1 : 0, 0, 1) != 0;
-    o.spread = a.real("--spread", o.spread, 0, 100);
-    o.wait_back = a.real("--wait-back", o.wait_back, 0, 100);
-    o.wait_side = a.real("--wait-side", o.wait_side, 0, 100);
-    o.queue_spacing = a.real("--queue-spacing", o.queue_spacing, 0, 100);
-    o.spare = a.real("--spare", o.spare, 0, 100);
+    madbp::PassageParams& p = o.passage;
+    p.one_lane_width = a.real("--one-lane-width", p.one_lane_width, 0, 100);
+    p.go_around = a.integer("--go-around", p.go_around ? 1 : 0, 0, 1) != 0;
+    p.spread = a.real("--spread", p.spread, 0, 100);
+    p.wait_back = a.real("--wait-back", p.wait_back, 0, 100);
+    p.wait_side = a.real("--wait-side", p.wait_side, 0, 100);
+    p.queue_spacing = a.real("--queue-spacing", p.queue_spacing, 0, 100);
+    p.spare = a.real("--spare", p.spare, 0, 100);
     o.passage_replan = (int)a.integer("--passage-replan", o.passage_replan, 0, 1000);
     o.replan_error = a.real("--replan-error", o.replan_error, 0, 100);
     o.warm_start = (int)a.integer("--warm-start", o.warm_start, 0, 1000);
@@ -101,13 +97,7 @@ inline std::unique_ptr<madbp::DiffusionPlanner> make_planner(const madbp::MadbpM
     planner->sampler.cost = o.cost;
     planner->sampler.warm_start = o.warm_start;
     planner->take_turns = o.take_turns;
-    planner->passages.params.one_lane_width = o.one_lane_width;
-    planner->passages.params.go_around = o.go_around;
-    planner->passages.params.spread = o.spread;
-    planner->passages.params.wait_back = o.wait_back;
-    planner->passages.params.wait_side = o.wait_side;
-    planner->passages.params.queue_spacing = o.queue_spacing;
-    planner->passages.params.spare = o.spare;
+    planner->passages.params = o.passage;
     planner->passage_replan = o.passage_replan;
     return planner;
 }
