@@ -11,19 +11,19 @@ using namespace madbp;
 
 namespace {
 
-// A wall across the world at y = 0 with a gap of `width` at x = 0, and (when half_length > 0)
+// A wall across the world at y = 0 with a gap of `width` at x = x0, and (when half_length > 0)
 // a corridor of that width through the gap, from y = -half_length to half_length. free_standing:
 // the corridor walls only, no wall across the world (a way around).
-WorldMap corridor_map(double width, double half_length, bool free_standing = false) {
+WorldMap corridor_map(double width, double half_length, bool free_standing = false, double x0 = 0) {
     WorldMap m;
     const double h = m.half_size, w = 0.5 * width, t = 0.05;
     if (!free_standing) {
-        m.boxes.push_back({{-h, -t}, {-w, t}});
-        m.boxes.push_back({{w, -t}, {h, t}});
+        m.boxes.push_back({{-h, -t}, {x0 - w, t}});
+        m.boxes.push_back({{x0 + w, -t}, {h, t}});
     }
     if (half_length > 0) {
-        m.boxes.push_back({{-w - 2 * t, -half_length}, {-w, half_length}});
-        m.boxes.push_back({{w, -half_length}, {w + 2 * t, half_length}});
+        m.boxes.push_back({{x0 - w - 2 * t, -half_length}, {x0 - w, half_length}});
+        m.boxes.push_back({{x0 + w, -half_length}, {x0 + w + 2 * t, half_length}});
     }
     return m;
 }
@@ -76,8 +76,9 @@ std::vector<Vec2> walk_route(const WorldMap& map, Vec2 from, Vec2 to, ClosedCell
 
 TEST_CASE("passages: a long one-lane corridor, avoidable when it has a way around; not a doorway or a wide corridor") {
     CHECK(count_passages(corridor_map(0.44, 0.4)) == 1);
-    CHECK(count_passages(corridor_map(0.50, 0.4)) == 1);
-    CHECK(count_passages(corridor_map(0.70, 0.4)) == 0);                        // two robots pass side by side
+    CHECK(count_passages(corridor_map(0.45, 0.4)) == 1);
+    CHECK(count_passages(corridor_map(0.50, 0.4)) == 0);                        // two robots pass side by side
+    CHECK(count_passages(corridor_map(0.70, 0.4)) == 0);
     CHECK(count_passages(corridor_map(0.44, 0)) == 0);                          // a doorway in the wall
     CHECK(count_passages(WorldMap{}) == 0);                                     // corners are no passages
     RouteGuide guide;
@@ -105,6 +106,17 @@ TEST_CASE("passages: a long one-lane corridor, avoidable when it has a way aroun
     CHECK(*std::max_element(q.begin(), q.end()) == -1);
 }
 
+TEST_CASE("passages: the one-lane line (0.47): corridors up to 0.45 wide wherever their walls fall on the grid, none from 0.50") {
+    // Two robots (radius 0.1) pass side by side in a corridor 0.46 wide; narrower, they take turns.
+    // The line is drawn on 0.036 cells, so between 0.45 and 0.50 it depends on where the walls fall.
+    for (int k = 0; k < 11; ++k) {
+        const double x0 = -0.3 + 0.0547 * k;  // offsets across a cell and more
+        INFO("offset " << x0);
+        for (double width : {0.40, 0.43, 0.45}) CHECK(count_passages(corridor_map(width, 0.4, false, x0)) == 1);
+        for (double width : {0.50, 0.55}) CHECK(count_passages(corridor_map(width, 0.4, false, x0)) == 0);
+    }
+}
+
 TEST_CASE("passages: obstacle groups; a corridor is found when narrow gaps around it join its ends") {
     WorldMap m;
     m.discs.push_back({{0.9, 0.9}, 0.2});     // 0.1 from two borders: one with them
@@ -129,7 +141,7 @@ TEST_CASE("passages: obstacle groups; a corridor is found when narrow gaps aroun
             const Box& wall0 = b[b.size() - 2];
             const Box& wall1 = b[b.size() - 1];
             const double apart = std::max({wall0.lo.x - wall1.hi.x, wall1.lo.x - wall0.hi.x, wall0.lo.y - wall1.hi.y, wall1.lo.y - wall0.hi.y});
-            if (apart >= 0.52) continue;  // two robots pass side by side (0.54 is the rule's line, on 0.036 cells)
+            if (apart >= 0.46) continue;  // two robots may pass side by side (0.47 is the rule's line, drawn on the grid)
             ++corridors;
             RouteGuide guide;
             PassageControl pc;
@@ -138,7 +150,7 @@ TEST_CASE("passages: obstacle groups; a corridor is found when narrow gaps aroun
             INFO(std::string(map) << " seed " << seed);
             CHECK(p[guide.grid().index(centre)] >= 0);
         }
-    CHECK(corridors >= 40);
+    CHECK(corridors >= 25);
 }
 
 TEST_CASE("passages: head-on, the nearer robot goes and the other waits outside, beside its mouth") {

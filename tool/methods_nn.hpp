@@ -207,7 +207,7 @@ inline void register_nn_methods(std::vector<Method>& m) {
                  "                    default 1), --spread S (robots going around one take its two sides in turn:\n"
                  "                    each the side whose way, plus S per robot already going that side, is\n"
                  "                    shortest; default 0.3, 0 = all the shortest way), --one-lane-width W (passages\n"
-                 "                    narrower than W wall to wall are one-lane; default 0.54), --wait-back D,\n"
+                 "                    narrower than W wall to wall are one-lane; default 0.47), --wait-back D,\n"
                  "                    --queue-spacing D, --wait-side D (the first waiting robot waits D out from the\n"
                  "                    mouth, each next D farther, D to the right; defaults 0.45, 0.3, 0.25), --spare D\n"
                  "                    (one from the other mouth waits unless it would enter after those inside are D\n"
