@@ -96,6 +96,8 @@
 //        plan_robot takes the robot's clock (`step`) and warm-starts from its own last windows.
 //        DiffusionPlanner::passage_replan (kDefaultPassageReplan): while robots may meet in a
 //        one-lane passage, a plan asks to be replaced after 4 steps (Plan::replan_after).
+//        kDefaultKeepRight 500 (was 300), with the follower's lookahead 2.0: faster at the same
+//        success.
 //   0.1  neural-network core, safetensors checkpoints, MA-DBP model, DDIM sampler, planner.
 
 #ifndef MADBP_HPP
@@ -2723,8 +2725,9 @@ constexpr int kMaxCandidates = 64;
 // is 0, plain DDIM): tuned on seeds 1000-1099 (docs/experiments.md).
 constexpr float kDefaultGuidance = 0.004f;
 // The keep-right push DiffusionPlanner samples with (SamplerConfig::keep_right; the bare sampler's
-// default is 0): tuned on seeds 1000-1099 (docs/experiments.md, "Keep right").
-constexpr float kDefaultKeepRight = 300.f;
+// default is 0): tuned on seeds 1000-1099 (docs/experiments.md, "Keep right"); 300 until stop 31,
+// 500 with the follower's lookahead 2.0 (docs/experiments.md, "Pace at the same success").
+constexpr float kDefaultKeepRight = 500.f;
 // The end bend DiffusionPlanner samples with (SamplerConfig::end_bend; the bare sampler's default
 // is 0): tuned on seeds 1000-1299 (docs/experiments.md, "Windows that arrive").
 constexpr float kDefaultEndBend = 1.f;

@@ -22,7 +22,7 @@
 //        Eigen::Map), with operator==; local_crop here. PlanFollower weighs robots in its safety
 //        filter as the guided expert does (FollowerConfig::priority_weight = 4; 1 = the 0.1 filter).
 //        priority_order over any n robots; RouteGuide::route_steps (the expert's priority key).
-//        PlanFollower's tracker aims FollowerConfig::lookahead = 1.5 steps ahead of the plan
+//        PlanFollower's tracker aims FollowerConfig::lookahead = 2.0 steps ahead of the plan
 //        (0 = the 0.1 follower), which makes up the lag a robot builds behind a moving plan.
 //        PassageControl: robots take turns through one-lane corridors (who waits, and where);
 //        at one with a short way around, the robot that would wait goes around it
@@ -40,6 +40,7 @@
 //        stand farther out and go sooner; PassageControl::contested.
 //        PassageParams::one_lane_width 0.47 (was 0.54): two robots pass side by side in corridors
 //        0.46 wide and more, which is faster and fails less than taking turns there.
+//        FollowerConfig::lookahead 2.0 (was 1.5), with the planner's keep-right 500.
 //   0.1  world, maps, controllers.
 
 #ifndef MADBP_SIM_HPP
@@ -1507,9 +1508,10 @@ struct FollowerConfig {
     // waypoint planned for this step, SPEC 8). A robot falls behind a moving waypoint whenever
     // the plan asks for more acceleration than |u| <= 1 gives (0.2 steps after one step, 0.7-0.95
     // after eight), and each replan starts from where the robot is, so the lag adds up: MA-DBP's
-    // robots took 4-13 % more steps than the expert's. 1.5 removes most of it
-    // (docs/experiments.md, "Tracking lookahead").
-    double lookahead = 1.5;
+    // robots took 4-13 % more steps than the expert's. 1.5 removed most of it (docs/experiments.md,
+    // "Tracking lookahead"); 2.0, with keep-right 500, 1.8 % more of the steps in interaction and
+    // random scenes at the same success (stop 31, "Pace at the same success").
+    double lookahead = 2.0;
     // Replan before replan_every steps are up (but not before half of them) when a robot is
     // farther than this from the waypoint its plan has for now, world units, >= 0 (0: only every
     // replan_every steps). The guided expert does the same (ExpertParams::replan_error). A robot

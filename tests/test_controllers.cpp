@@ -337,7 +337,7 @@ TEST_CASE("PlanFollower: lookahead aims between later waypoints; in steady track
         fc.replan_every = 100;  // one plan: the window runs out after 15 steps
         return PlanFollower(along_x, fc);
     };
-    CHECK(FollowerConfig{}.lookahead == 1.5);
+    CHECK(FollowerConfig{}.lookahead == 2.0);
     const Vec2 v_ref = model.steady_velocity({0.02, 0});
     PlanFollower now = follower(0), ahead = follower(1.5), past_end = follower(100);
     CHECK(norm(now.act(w)[0] - track_waypoint({0, 0}, {0, 0}, {0.02, 0}, v_ref, model, TrackerParams{})) < 1e-12);
