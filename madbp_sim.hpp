@@ -1509,8 +1509,8 @@ struct FollowerConfig {
     // the plan asks for more acceleration than |u| <= 1 gives (0.2 steps after one step, 0.7-0.95
     // after eight), and each replan starts from where the robot is, so the lag adds up: MA-DBP's
     // robots took 4-13 % more steps than the expert's. 1.5 removed most of it (docs/experiments.md,
-    // "Tracking lookahead"); 2.0, with keep-right 500, 1.8 % more of the steps in interaction and
-    // random scenes at the same success (stop 31, "Pace at the same success").
+    // "Tracking lookahead"); 2.0, with keep-right 500, takes 1.8 % fewer steps again over the 50
+    // tuning cells at the same success ("Pace at the same success").
     double lookahead = 2.0;
     // Replan before replan_every steps are up (but not before half of them) when a robot is
     // farther than this from the waypoint its plan has for now, world units, >= 0 (0: only every
