@@ -72,7 +72,7 @@
 //   6 diffusion: NoiseSchedule, SamplerConfig, sample_windows (DDIM with inpainting,
 //     guidance, best-of-k, keep-right, end bend, warm start)                            [6]
 //   7 planner: DiffusionPlanner (plan, neighbourhoods, take_turns, passage_replan,
-//     plan_robot)                                                                       [8]
+//     line_start, plan_robot)                                                           [8]
 //
 // Changelog
 //   0.2  one FilmUNet / ContextEncoder / TrajectoryProcessor; one world-to-model encoder;
@@ -97,7 +97,9 @@
 //        DiffusionPlanner::passage_replan (kDefaultPassageReplan): while robots may meet in a
 //        one-lane passage, a plan asks to be replaced after 4 steps (Plan::replan_after).
 //        kDefaultKeepRight 500 (was 300), with the follower's lookahead 2.0: faster at the same
-//        success.
+//        success. DiffusionPlanner::line_start (kDefaultLineStart, on): a robot without a last
+//        window (a first plan, a robot that joined, a neighbour without an id) warm-starts from a
+//        straight line toward its route goal, so a first plan costs what a warm one does.
 //   0.1  neural-network core, safetensors checkpoints, MA-DBP model, DDIM sampler, planner.
 
 #ifndef MADBP_HPP
@@ -3300,6 +3302,12 @@ public:
     // two mouths, or a robot waits), the plan asks to be replaced after this many steps
     // (Plan::replan_after), so that the waiting go as soon as the way is clear (0: never asks).
     int passage_replan = kDefaultPassageReplan;
+    // A robot with no last window to start from (a first plan, a robot that joined) starts from a
+    // straight line toward what it heads for (route_goal) instead of pure noise, so that with
+    // SamplerConfig::warm_start W a first plan too runs only the last W DDIM steps: half the time
+    // of a cold plan, at the same success on the tuning suite (docs/experiments.md, "Line start").
+    static constexpr bool kDefaultLineStart = true;
+    bool line_start = kDefaultLineStart;
     // What the last plan (or plan_robot) asks: passage_replan while robots may meet in a passage, else 0.
     int replan_after() const {
         if (passage_replan <= 0 || !take_turns) return 0;
@@ -3394,7 +3402,7 @@ public:
     // Decentralised use: one robot plans its own window from what it can know, its position and
     // goal, the other robots' positions and goals as received from them, and the map. `id` seeds
     // the draw (use the robot's id): with the same planner seed, and `others` in the world's agent
-    // order, a cold plan_robot's window equals the one a cold plan() (a first one, or warm_start
+    // order, a first plan_robot's window equals the one a first plan() (or one with warm_start
     // 0) gives this robot under neighbourhood planning (K = neighbourhood size of an automatic or
     // set `neighbours`; the whole team when neighbours = 0).
     // `vel` (and Neighbour::vel) is read only by a model with ModelConfig::velocity_context. The
@@ -3402,8 +3410,9 @@ public:
     // the team's plan() sees for the same turns, and are read by a model with priority_context.
     // `step`: the robot's clock in world steps (dt each), for warm starts (SamplerConfig::warm_start):
     // the plan starts from this planner's last plan_robot windows (its own and the neighbours' it
-    // drew then, by id) when that plan was made at an earlier step and every robot of the scene
-    // has an id and a window there; otherwise, and with step -1 (the default), it draws cold.
+    // drew then, by id) when that plan was made at an earlier step; a robot of the scene without
+    // an id or a window there starts from a line (line_start), or, without line_start, the whole
+    // scene draws cold; with step -1 (the default) every robot has no window.
     // Use one planner per robot, as one per world.
     void plan_robot(const WorldMap& map, int id, Vec2 pos, Vec2 goal, const std::vector<Neighbour>& others, std::vector<Vec2>& window,
                     Vec2 vel = {0, 0}, long step = -1) {
@@ -3512,7 +3521,7 @@ private:
         if (local) batch_.noise_seed.resize(scenes);
         else batch_.noise_seed.clear();
         // Warm only when every robot of every scene has a last window to start from.
-        bool warm = sampler.warm_start > 0 && sampler.warm_start < sampler.sample_steps && last_t_ >= 0 && now_ > last_t_;
+        bool warm = sampler.warm_start > 0 && sampler.warm_start < sampler.sample_steps && ((last_t_ >= 0 && now_ > last_t_) || line_start);
         if (warm) warm_.setZero(2, (long)c.horizon * scenes * K);
         for (int b = 0; b < scenes; ++b) {
             int m = n;
@@ -3542,7 +3551,7 @@ private:
                     continue;
                 }
                 const int i = members_[k];
-                if (warm) warm = warm_from_last(i, a);
+                if (warm) warm = warm_from_last(i, a) || (line_start && line_window(i, a));
                 encode_agent(batch_, a, /*slot*/ k, pos_[i], route_[i].goal, map, c, route_[i].final, vel_[i],
                              c.priority_context ? priority_[k] : 1.0f);
             }
@@ -3559,6 +3568,25 @@ private:
         const size_t n = last_ids_.size();
         const size_t j = (size_t)i < n && last_ids_[i] == id ? (size_t)i : std::find(last_ids_.begin(), last_ids_.end(), id) - last_ids_.begin();
         return j < n && detail::warm_window(last_windows_[j], now_ - last_t_, pos_[i], model_.config, warm_, (long)a * model_.config.horizon);
+    }
+
+    // Agent a's columns of warm_ as a straight line from robot i toward route_[i] (line_start):
+    // waypoint t at t / (H - 1) of a window's reach (window_scale) along it, or at the goal if
+    // that is nearer and final. Always true.
+    bool line_window(int i, int a) {
+        const ModelConfig& c = model_.config;
+        const Vec2 d = route_[i].goal - pos_[i];
+        const double dist = norm(d);
+        const long col = (long)a * c.horizon;
+        warm_.middleCols(col, c.horizon).setZero();
+        if (dist < 1e-9) return true;
+        const double reach = route_[i].final ? std::min(1.0, dist / c.window_scale) : 1.0;  // normalised
+        for (int t = 1; t < c.horizon; ++t) {
+            const double r = reach * t / (c.horizon - 1);
+            warm_(0, col + t) = (float)(r * d.x / dist);
+            warm_(1, col + t) = (float)(r * d.y / dist);
+        }
+        return true;
     }
 
     // Column `col` of x_ as waypoints from p0 (world units), interpolated to every world step.

@@ -1001,15 +1001,27 @@ TEST_CASE("warm window: the last window from now on, as displacements from where
     }
 }
 
+// The plan's waypoints are the windows x (2, H*n) drawn by hand, one scene of the world's n robots.
+static void check_plan_is(const Mat& x, const World& w, const Plan& p, const ModelConfig& c) {
+    const int H = c.horizon;
+    for (int i = 0; i < w.size(); ++i)
+        for (int t = 1; t < H; ++t) {
+            const Vec2 q = w.agents()[i].pos + Vec2{x(0, (long)i * H + t) * (double)c.window_scale, x(1, (long)i * H + t) * (double)c.window_scale};
+            CHECK(p.waypoints[i][t - 1].x == doctest::Approx(q.x));
+            CHECK(p.waypoints[i][t - 1].y == doctest::Approx(q.y));
+        }
+}
+
 TEST_CASE("planner: a warm start draws each robot's window from its last one shifted to now; a new episode draws cold") {
     const ModelConfig c = tiny_config();
     const int H = c.horizon, n = 3;
     DiffusionPlanner warm(MadbpModel(c, 2), 11), cold(MadbpModel(c, 2), 11);
     CHECK(warm.sampler.warm_start == kDefaultWarmStart);
     cold.sampler.warm_start = 0;
-    for (DiffusionPlanner* p : {&warm, &cold}) {  // the plain path
+    for (DiffusionPlanner* p : {&warm, &cold}) {  // the plain path, first plans from noise (line_start's own test below)
         p->sampler.guidance = 0;
         p->sampler.end_bend = 0;
+        p->line_start = false;
     }
     warm.sampler.warm_start = 2;  // of the tiny model's 5 steps
     // The same draws by hand: the reference sampler's rng and model.
@@ -1019,14 +1031,7 @@ TEST_CASE("planner: a warm start draws each robot's window from its last one shi
     Rng rng(11);
     Mat x, out, warm_x;
     std::vector<int> buf;
-    auto expect_plan = [&](const World& w, const Plan& p) {
-        for (int i = 0; i < n; ++i)
-            for (int t = 1; t < H; ++t) {
-                const Vec2 q = w.agents()[i].pos + Vec2{x(0, (long)i * H + t) * (double)c.window_scale, x(1, (long)i * H + t) * (double)c.window_scale};
-                CHECK(p.waypoints[i][t - 1].x == doctest::Approx(q.x));
-                CHECK(p.waypoints[i][t - 1].y == doctest::Approx(q.y));
-            }
-    };
+    auto expect_plan = [&](const World& w, const Plan& p) { check_plan_is(x, w, p, c); };
     World world = make_random_world("obstacles", n, 3);
     const Plan first = warm.plan(world), first_cold = cold.plan(world);  // no last window yet: both draw cold
     CHECK(first.waypoints == first_cold.waypoints);
@@ -1046,4 +1051,44 @@ TEST_CASE("planner: a warm start draws each robot's window from its last one shi
     no_warm.warm_start = 0;
     sample_windows(copy, sched, warm.last_scene_batch(), no_warm, rng, x, out, buf);
     expect_plan(next, third);
+}
+
+TEST_CASE("planner: line_start: a robot without a last window starts from a straight line toward its goal") {
+    const ModelConfig c = tiny_config();  // no route subgoals: each robot heads for its goal
+    const int H = c.horizon, n = 3;
+    DiffusionPlanner planner(MadbpModel(c, 2), 11);
+    CHECK(planner.line_start == DiffusionPlanner::kDefaultLineStart);
+    planner.line_start = true;
+    planner.sampler.guidance = 0;  // the plain path
+    planner.sampler.end_bend = 0;
+    planner.sampler.warm_start = 2;  // of the tiny model's 5 DDIM steps
+    MadbpModel copy(c, 2);
+    copy.set_training(false);
+    NoiseSchedule sched(c.diffusion_steps);
+    Rng rng(11);
+    Mat x, out;
+    std::vector<int> buf;
+    World world = make_random_world("empty", n, 3);
+    const Vec2 near{world.agents()[1].pos.x > 0 ? -0.2 : 0.2, 0.1};  // a goal nearer than a window's reach, inside the world
+    world.set_goal(world.agents()[1].id, world.agents()[1].pos + near);
+    const Plan first = planner.plan(world);
+    // The line by hand: waypoint t at t / (H - 1) of the reach, which stops at a goal nearer than window_scale.
+    Mat line = Mat::Zero(2, (long)H * n);
+    for (int i = 0; i < n; ++i) {
+        const Vec2 d = world.agents()[i].goal - world.agents()[i].pos;
+        const double reach = std::min(1.0, norm(d) / c.window_scale);
+        for (int t = 1; t < H; ++t) {
+            line(0, (long)i * H + t) = (float)(reach * t / (H - 1) * d.x / norm(d));
+            line(1, (long)i * H + t) = (float)(reach * t / (H - 1) * d.y / norm(d));
+        }
+    }
+    CHECK(line(0, 2L * H - 1) == doctest::Approx(near.x / c.window_scale));  // robot 1's line ends on its goal
+    CHECK(line(1, 2L * H - 1) == doctest::Approx(near.y / c.window_scale));
+    sample_windows(copy, sched, planner.last_scene_batch(), planner.sampler, rng, x, out, buf, nullptr, &line);
+    check_plan_is(x, world, first, c);
+    // Without line_start the same first plan draws all S steps from noise.
+    DiffusionPlanner from_noise(MadbpModel(c, 2), 11);
+    from_noise.line_start = false;
+    from_noise.sampler = planner.sampler;
+    CHECK(from_noise.plan(world).waypoints != first.waypoints);
 }

@@ -284,6 +284,7 @@ TEST_CASE("large: plan_robot starts from its last windows when given its clock, 
     DiffusionPlanner team(MadbpModel(c, 2), 9);
     team.sensing_radius = 0.2;  // every robot alone in its scene: its warm window is its own last one in both
     team.sampler.warm_start = kWarm;
+    team.line_start = false;  // without last windows, from noise (line_start's own test is in test_interaction)
     team.plan(world);
     for (int k = 0; k < kElapsed; ++k) world.step(std::vector<Vec2>(world.size(), Vec2{0.3, -0.2}));
     const Plan warm_plan = team.plan(world);
@@ -292,6 +293,7 @@ TEST_CASE("large: plan_robot starts from its last windows when given its clock, 
         DiffusionPlanner robot(MadbpModel(c, 2), 9);
         robot.sensing_radius = radius;
         robot.sampler.warm_start = kWarm;
+        robot.line_start = false;
         std::vector<Vec2> window;
         const Agent &me0 = start.agents()[i], &me = world.agents()[i];
         robot.plan_robot(start.map(), me0.id, me0.pos, me0.goal, others_of(start, i, reversed), window, me0.vel, 0);

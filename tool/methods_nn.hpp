@@ -33,6 +33,7 @@ struct PlannerOptions {
     int passage_replan = madbp::kDefaultPassageReplan;  // DiffusionPlanner::passage_replan (0: off)
     double replan_error = madbp::FollowerConfig{}.replan_error;  // 0: replan only every m steps
     int warm_start = madbp::kDefaultWarmStart;  // SamplerConfig::warm_start (0: off)
+    bool line_start = madbp::DiffusionPlanner::kDefaultLineStart;  // DiffusionPlanner::line_start
     bool decentralised = false;  // each robot plans for itself (DiffusionPlanner::plan_robot), a planner each
 };
 // "A,M,G": the agent, map and goal weights of the window cost.
@@ -77,6 +78,7 @@ inline PlannerOptions read_planner_options(Args& a) {
     o.passage_replan = (int)a.integer("--passage-replan", o.passage_replan, 0, 1000);
     o.replan_error = a.real("--replan-error", o.replan_error, 0, 100);
     o.warm_start = (int)a.integer("--warm-start", o.warm_start, 0, 1000);
+    o.line_start = a.integer("--line-start", o.line_start ? 1 : 0, 0, 1) != 0;
     o.decentralised = a.flag("--decentralised");
     return o;
 }
@@ -96,6 +98,7 @@ inline std::unique_ptr<madbp::DiffusionPlanner> make_planner(const madbp::MadbpM
     planner->sampler.end_bend = (float)o.end_bend;
     planner->sampler.cost = o.cost;
     planner->sampler.warm_start = o.warm_start;
+    planner->line_start = o.line_start;
     planner->take_turns = o.take_turns;
     planner->passages.params = o.passage;
     planner->passage_replan = o.passage_replan;
@@ -193,7 +196,9 @@ inline void register_nn_methods(std::vector<Method>& m) {
                  "                    --end-bend B (a window heading for a goal within reach is bent to arrive\n"
                  "                    there, not stop short; in [0, 1], default 1, 0 = off), --warm-start W (a plan\n"
                  "                    runs the last W of the S DDIM steps from each robot's last window, noised to\n"
-                 "                    that level, instead of all S from noise; default 5, 0 = off),\n"
+                 "                    that level, instead of all S from noise; default 5, 0 = off), --line-start 0|1\n"
+                 "                    (a robot with no last window, e.g. in a first plan, starts from a straight line\n"
+                 "                    toward its goal or route subgoal instead, so it too runs W steps; default 1),\n"
                  "                    --priority-weight W (safety-filter weight of the robot that goes first, as the\n"
                  "                    expert's; default 4; 1 = all equal), --lookahead L (the tracker aims L steps\n"
                  "                    ahead of the plan's waypoint for now; default 2.0, 0 = SPEC 8's),\n"
