@@ -3520,7 +3520,7 @@ private:
         const uint64_t plan_seed = local ? rng_.next_u64() : 0;
         if (local) batch_.noise_seed.resize(scenes);
         else batch_.noise_seed.clear();
-        // Warm only when every robot of every scene has a last window to start from.
+        // Warm when every robot of every scene has a last window to start from, or a line (line_start).
         bool warm = sampler.warm_start > 0 && sampler.warm_start < sampler.sample_steps && ((last_t_ >= 0 && now_ > last_t_) || line_start);
         if (warm) warm_.setZero(2, (long)c.horizon * scenes * K);
         for (int b = 0; b < scenes; ++b) {
