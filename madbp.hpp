@@ -2737,6 +2737,9 @@ constexpr float kDefaultEndBend = 1.f;
 // robot's last window; the bare sampler's default is 0): tuned on seeds 1000-1299
 // (docs/experiments.md, "Warm-started windows").
 constexpr int kDefaultWarmStart = 5;
+// Whether DiffusionPlanner starts a robot without a last window from a straight line
+// (DiffusionPlanner::line_start): tuned on seeds 1000-1299 (docs/experiments.md, "Line start").
+constexpr bool kDefaultLineStart = true;
 // How soon a plan asks to be replaced while robots may meet in a one-lane passage
 // (DiffusionPlanner::passage_replan): tuned on seeds 1000-1199 (docs/experiments.md, "Turns on time").
 constexpr int kDefaultPassageReplan = 4;
@@ -3306,7 +3309,6 @@ public:
     // straight line toward what it heads for (route_goal) instead of pure noise, so that with
     // SamplerConfig::warm_start W a first plan too runs only the last W DDIM steps: half the time
     // of a cold plan, at the same success on the tuning suite (docs/experiments.md, "Line start").
-    static constexpr bool kDefaultLineStart = true;
     bool line_start = kDefaultLineStart;
     // What the last plan (or plan_robot) asks: passage_replan while robots may meet in a passage, else 0.
     int replan_after() const {
@@ -3551,7 +3553,10 @@ private:
                     continue;
                 }
                 const int i = members_[k];
-                if (warm) warm = warm_from_last(i, a) || (line_start && line_window(i, a));
+                if (warm && !warm_from_last(i, a)) {
+                    if (line_start) line_window(i, a);
+                    else warm = false;
+                }
                 encode_agent(batch_, a, /*slot*/ k, pos_[i], route_[i].goal, map, c, route_[i].final, vel_[i],
                              c.priority_context ? priority_[k] : 1.0f);
             }
@@ -3572,21 +3577,20 @@ private:
 
     // Agent a's columns of warm_ as a straight line from robot i toward route_[i] (line_start):
     // waypoint t at t / (H - 1) of a window's reach (window_scale) along it, or at the goal if
-    // that is nearer and final. Always true.
-    bool line_window(int i, int a) {
+    // that is nearer and final.
+    void line_window(int i, int a) {
         const ModelConfig& c = model_.config;
         const Vec2 d = route_[i].goal - pos_[i];
         const double dist = norm(d);
         const long col = (long)a * c.horizon;
         warm_.middleCols(col, c.horizon).setZero();
-        if (dist < 1e-9) return true;
+        if (dist < 1e-9) return;
         const double reach = route_[i].final ? std::min(1.0, dist / c.window_scale) : 1.0;  // normalised
         for (int t = 1; t < c.horizon; ++t) {
             const double r = reach * t / (c.horizon - 1);
             warm_(0, col + t) = (float)(r * d.x / dist);
             warm_(1, col + t) = (float)(r * d.y / dist);
         }
-        return true;
     }
 
     // Column `col` of x_ as waypoints from p0 (world units), interpolated to every world step.

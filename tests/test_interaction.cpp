@@ -1057,7 +1057,7 @@ TEST_CASE("planner: line_start: a robot without a last window starts from a stra
     const ModelConfig c = tiny_config();  // no route subgoals: each robot heads for its goal
     const int H = c.horizon, n = 3;
     DiffusionPlanner planner(MadbpModel(c, 2), 11);
-    CHECK(planner.line_start == DiffusionPlanner::kDefaultLineStart);
+    CHECK(planner.line_start == kDefaultLineStart);
     planner.line_start = true;
     planner.sampler.guidance = 0;  // the plain path
     planner.sampler.end_bend = 0;

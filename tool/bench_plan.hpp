@@ -68,7 +68,7 @@ inline int bench_plan(Args& a) {
     const int candidates = (int)a.integer("--candidates", 1, 1, madbp::kMaxCandidates);
     const double keep_right = a.real("--keep-right", madbp::kDefaultKeepRight, 0, 1e6);
     const int warm_start = (int)a.integer("--warm-start", madbp::kDefaultWarmStart, 0, 1000);
-    const bool line_start = a.integer("--line-start", madbp::DiffusionPlanner::kDefaultLineStart ? 1 : 0, 0, 1) != 0;
+    const bool line_start = a.integer("--line-start", madbp::kDefaultLineStart ? 1 : 0, 0, 1) != 0;
     bool json = a.flag("--json");
     a.finish();
     madbp::set_num_threads(1);  // SPEC 9: one core

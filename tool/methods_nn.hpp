@@ -33,7 +33,7 @@ struct PlannerOptions {
     int passage_replan = madbp::kDefaultPassageReplan;  // DiffusionPlanner::passage_replan (0: off)
     double replan_error = madbp::FollowerConfig{}.replan_error;  // 0: replan only every m steps
     int warm_start = madbp::kDefaultWarmStart;  // SamplerConfig::warm_start (0: off)
-    bool line_start = madbp::DiffusionPlanner::kDefaultLineStart;  // DiffusionPlanner::line_start
+    bool line_start = madbp::kDefaultLineStart;  // DiffusionPlanner::line_start
     bool decentralised = false;  // each robot plans for itself (DiffusionPlanner::plan_robot), a planner each
 };
 // "A,M,G": the agent, map and goal weights of the window cost.
