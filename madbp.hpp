@@ -100,6 +100,9 @@
 //        success. DiffusionPlanner::line_start (kDefaultLineStart, on): a robot without a last
 //        window (a first plan, a robot that joined, a neighbour without an id) warm-starts from a
 //        straight line toward its route goal, so a first plan costs what a warm one does.
+//        The planner samples with kDefaultSampleSteps 8 (planner_sample_steps; the model's own S
+//        where that is fewer) and kDefaultWarmStart 4 (was 5 of the model's 10): a plan runs 4
+//        network passes instead of 5, from the same noise level.
 //   0.1  neural-network core, safetensors checkpoints, MA-DBP model, DDIM sampler, planner.
 
 #ifndef MADBP_HPP
@@ -2733,10 +2736,16 @@ constexpr float kDefaultKeepRight = 500.f;
 // The end bend DiffusionPlanner samples with (SamplerConfig::end_bend; the bare sampler's default
 // is 0): tuned on seeds 1000-1299 (docs/experiments.md, "Windows that arrive").
 constexpr float kDefaultEndBend = 1.f;
-// The warm start DiffusionPlanner samples with (SamplerConfig::warm_start, DDIM steps from each
-// robot's last window; the bare sampler's default is 0): tuned on seeds 1000-1299
-// (docs/experiments.md, "Warm-started windows").
-constexpr int kDefaultWarmStart = 5;
+// The DDIM steps DiffusionPlanner samples with (SamplerConfig::sample_steps; the bare sampler and
+// training use the model's own, ModelConfig::sample_steps, 10 for the shipped models), and the
+// warm start (SamplerConfig::warm_start, the last W of them run from each robot's last window; the
+// bare sampler's default is 0). Warm start 5 of 10 from stop 25 (seeds 1000-1299, docs/experiments.md,
+// "Warm-started windows"); 4 of 8 since stop 33: the same noise level, 4 network passes per plan
+// instead of 5, at the same success on the tuning suite (docs/experiments.md, "Four passes a plan").
+constexpr int kDefaultSampleSteps = 8;
+constexpr int kDefaultWarmStart = 4;
+// The planner's S for a model: kDefaultSampleSteps, or the model's own where that is fewer.
+inline int planner_sample_steps(const ModelConfig& c) { return std::min(kDefaultSampleSteps, c.sample_steps); }
 // Whether DiffusionPlanner starts a robot without a last window from a straight line
 // (DiffusionPlanner::line_start): tuned on seeds 1000-1299 (docs/experiments.md, "Line start").
 constexpr bool kDefaultLineStart = true;
@@ -3320,7 +3329,7 @@ public:
     explicit DiffusionPlanner(MadbpModel model, uint64_t seed = 0)
         : model_(std::move(model)), schedule_(model_.config.diffusion_steps), rng_(seed) {
         model_.set_training(false);
-        sampler.sample_steps = model_.config.sample_steps;
+        sampler.sample_steps = planner_sample_steps(model_.config);
         sampler.goal_reach = default_goal_reach(model_.config);
         sampler.guidance = kDefaultGuidance;
         sampler.keep_right = kDefaultKeepRight;

@@ -1017,6 +1017,11 @@ TEST_CASE("planner: a warm start draws each robot's window from its last one shi
     const int H = c.horizon, n = 3;
     DiffusionPlanner warm(MadbpModel(c, 2), 11), cold(MadbpModel(c, 2), 11);
     CHECK(warm.sampler.warm_start == kDefaultWarmStart);
+    // The planner's S: kDefaultSampleSteps, or the model's own where fewer (the tiny model's 5).
+    CHECK(warm.sampler.sample_steps == std::min(kDefaultSampleSteps, c.sample_steps));
+    ModelConfig shipped_steps = c;
+    shipped_steps.sample_steps = 10;
+    CHECK(DiffusionPlanner(MadbpModel(shipped_steps, 2)).sampler.sample_steps == kDefaultSampleSteps);
     cold.sampler.warm_start = 0;
     for (DiffusionPlanner* p : {&warm, &cold}) {  // the plain path, first plans from noise (line_start's own test below)
         p->sampler.guidance = 0;

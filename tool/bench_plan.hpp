@@ -74,7 +74,7 @@ inline int bench_plan(Args& a) {
     madbp::set_num_threads(1);  // SPEC 9: one core
     madbp::ModelConfig config;
     if (!model_path.empty()) config = madbp::load_model(model_path).config;
-    const int S = steps > 0 ? steps : config.sample_steps;
+    const int S = steps > 0 ? steps : madbp::planner_sample_steps(config);
     // The GEMM of the first down block's convolution for 8 agents: (C0, D*k) x (D*k, H*8).
     const double gemm = eigen_gemm_rate(config.channels[0], config.dim * config.kernel, config.horizon * 8);
     if (!json)

@@ -181,7 +181,8 @@ inline MethodSpec madbp_method(const PlannerOptions& o, const MethodSetup& s) {
 inline void register_nn_methods(std::vector<Method>& m) {
     m.push_back({"madbp",
                  "MA-DBP diffusion planner + tracker (+ safety filter) (SPEC 5-8); --model FILE\n"
-                 "                    (default models/madbp-default.safetensors), --sample-steps S,\n"
+                 "                    (default models/madbp-default.safetensors), --sample-steps S (DDIM\n"
+                 "                    steps; default 8, or the model's own if fewer),\n"
                  "                    --no-goal-inpaint, --goal-reach R (world units; default 0.55),\n"
                  "                    --neighbours K (each robot plans with its K-1 nearest; 0 = whole team;\n"
                  "                    default: K = the model's n_train_max when the team or the world is larger\n"
@@ -196,7 +197,7 @@ inline void register_nn_methods(std::vector<Method>& m) {
                  "                    --end-bend B (a window heading for a goal within reach is bent to arrive\n"
                  "                    there, not stop short; in [0, 1], default 1, 0 = off), --warm-start W (a plan\n"
                  "                    runs the last W of the S DDIM steps from each robot's last window, noised to\n"
-                 "                    that level, instead of all S from noise; default 5, 0 = off), --line-start 0|1\n"
+                 "                    that level, instead of all S from noise; default 4, 0 = off), --line-start 0|1\n"
                  "                    (a robot with no last window, e.g. in a first plan, starts from a straight line\n"
                  "                    toward its goal or route subgoal instead, so it too runs W steps; default 1),\n"
                  "                    --priority-weight W (safety-filter weight of the robot that goes first, as the\n"
