@@ -3064,6 +3064,7 @@ struct SamplerConfig {
     // the way it chose (which side, who goes first) unless the model pulls it off, and a plan
     // costs W / S of the network evaluations. 0, or W >= S (every step) = off.
     int warm_start = 0;
+    bool warm_starts() const { return warm_start > 0 && warm_start < sample_steps; }  // warm_start is on
     bool conflict_aware() const { return guidance != 0 || candidates != 1; }
     // Throws std::invalid_argument naming the first field out of range; K: the model's diffusion
     // steps. sample_windows calls it, whichever path the options take.
@@ -3138,7 +3139,7 @@ inline void draw_noise(const SceneBatch& batch, int H, Rng& rng, Mat& x) {
 // sc.warm_start > 0, warm_start from x = sqrt(ab) warm + sqrt(1 - ab) x at that step's level,
 // each of the k candidates of scene b (x's scene b*k + j) from scene b's warm window.
 inline int warm_from(const NoiseSchedule& schedule, const SamplerConfig& sc, const Mat* warm, long scene_cols, int k, Mat& x) {
-    if (!warm || sc.warm_start <= 0 || sc.warm_start >= sc.sample_steps) return sc.sample_steps;
+    if (!warm || !sc.warm_starts()) return sc.sample_steps;
     if (warm->rows() != 2 || warm->cols() * k != x.cols()) throw std::invalid_argument("sampler: warm windows must be 2 x " + std::to_string(x.cols() / k) + " (2, H * agents), got " +
                                     std::to_string(warm->rows()) + " x " + std::to_string(warm->cols()));
     const double ab = schedule.alpha_bar[schedule.ddim_step(sc.warm_start, sc.sample_steps)];
@@ -3532,7 +3533,7 @@ private:
         if (local) batch_.noise_seed.resize(scenes);
         else batch_.noise_seed.clear();
         // Warm when every robot of every scene has a last window to start from, or a line (line_start).
-        bool warm = sampler.warm_start > 0 && sampler.warm_start < sampler.sample_steps && ((last_t_ >= 0 && now_ > last_t_) || line_start);
+        bool warm = sampler.warm_starts() && ((last_t_ >= 0 && now_ > last_t_) || line_start);
         if (warm) warm_.setZero(2, (long)c.horizon * scenes * K);
         for (int b = 0; b < scenes; ++b) {
             int m = n;

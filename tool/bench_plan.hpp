@@ -87,8 +87,6 @@ inline int bench_plan(Args& a) {
                     model_path.empty() ? "default config (random weights: time does not depend on them)" : model_path.c_str(), S, guidance, keep_right, candidates,
                     warm_start, line_start ? 1 : 0, config.channels[0], config.dim * config.kernel, config.dim * config.kernel, config.horizon * 8, gemm, "n",
                     "scenes", "ms/plan", "warm_ms", "expert_ms", "GFLOP/s", "of GEMM");
-    // DDIM steps of a first plan: with line start (and 0 < W < S) the last W, else all S.
-    const int first_steps = line_start && warm_start > 0 && warm_start < S ? warm_start : S;
     double robot_ms = 0, robot_warm_ms = 0;
     int robot_K = 0;
     for (long n : teams) {
@@ -100,6 +98,8 @@ inline int bench_plan(Args& a) {
         planner.sampler.keep_right = (float)keep_right;
         planner.sampler.warm_start = warm_start;
         planner.line_start = line_start;
+        // DDIM steps of a first plan: with line start and warm start on, the last W, else all S.
+        const int first_steps = line_start && planner.sampler.warm_starts() ? warm_start : S;
         // Larger teams need a larger world to spawn in (starts and goals 0.25 apart).
         madbp::World world = madbp::make_random_world("empty", (int)n, seed, n > 32 ? 3.4 : n > 8 ? 2.4 : 1.2);
         madbp::Plan plan;
