@@ -3,6 +3,8 @@
 // guided DDIM and best-of-k (madbp.hpp, SamplerConfig::guidance / candidates).
 #include <doctest/doctest.h>
 
+#include <queue>
+
 #include "madbp_train.hpp"
 #include "tiny_model.hpp"
 
@@ -316,6 +318,58 @@ TEST_CASE("goal fields: the distance to a goal around the map") {
     CHECK(gx < 0);  // walking towards the gap (+x) brings the goal nearer
     f.set_map(WorldMap{});
     CHECK(f.goals.empty());  // another map forgets them
+}
+
+TEST_CASE("goal fields: the bucket queue gives a binary heap's Dijkstra to the bit") {
+    // The reference: textbook Dijkstra with a binary heap over the same graph (8-connected nodes,
+    // a step into a node nearer than `radius` to the map costing kBlockedFactor times its length).
+    auto heap_dijkstra = [](const DistanceField& f, double gx, double gy, double radius) {
+        const int N = f.nodes;
+        std::vector<float> d((size_t)N * N, std::numeric_limits<float>::infinity());
+        using Entry = std::pair<float, int>;
+        std::priority_queue<Entry, std::vector<Entry>, std::greater<Entry>> q;
+        const int c0 = std::clamp((int)std::floor((gx - f.lo) / f.cell), 0, N - 2), r0 = std::clamp((int)std::floor((gy - f.lo) / f.cell), 0, N - 2);
+        for (int dr = 0; dr <= 1; ++dr)
+            for (int dc = 0; dc <= 1; ++dc) {
+                const int k = (r0 + dr) * N + c0 + dc;
+                d[k] = (float)std::hypot(f.lo + (c0 + dc) * f.cell - gx, f.lo + (r0 + dr) * f.cell - gy);
+                q.push({d[k], k});
+            }
+        while (!q.empty()) {
+            const auto [dist, k] = q.top();
+            q.pop();
+            if (dist > d[k]) continue;
+            for (int dr = -1; dr <= 1; ++dr)
+                for (int dc = -1; dc <= 1; ++dc) {
+                    const int r2 = k / N + dr, c2 = k % N + dc;
+                    if ((dr == 0 && dc == 0) || r2 < 0 || r2 >= N || c2 < 0 || c2 >= N) continue;
+                    const int k2 = r2 * N + c2;
+                    const double step = (dr && dc ? std::sqrt(2.0) : 1.0) * f.cell * (f.d[k2] < radius ? MapFields::kBlockedFactor : 1.0);
+                    const float nd = (float)(dist + step);
+                    if (nd < d[k2]) q.push({d[k2] = nd, k2});
+                }
+        }
+        return d;
+    };
+    const ModelConfig c = tiny_config();
+    Rng rng(7);
+    MapFields f;  // one for all three maps: what it keeps of a map must go with the map
+    for (const char* name : {"empty", "obstacles", "barrier"}) {
+        const WorldMap map = make_map(name, rng);
+        f.set_map(map);
+        SceneBatch s;
+        s.resize(1, 6, c, true);
+        for (int a = 0; a < 6; ++a)  // goals anywhere, some inside obstacles or on the border
+            encode_agent(s, a, a, {0, 0}, {rng.uniform(-1.25, 1.25), rng.uniform(-1.25, 1.25)}, map, c);
+        f.add_goals(s, c, 0.1);
+        REQUIRE(f.goals.size() == 6);
+        for (const MapFields::GoalField& g : f.goals) {
+            const std::vector<float> want = heap_dijkstra(f.clearance, g.x, g.y, 0.1);
+            long differ = 0;
+            for (size_t k = 0; k < want.size(); ++k) differ += want[k] != g.d[k];
+            CHECK_MESSAGE(differ == 0, name << ": goal (" << g.x << ", " << g.y << ")");
+        }
+    }
 }
 
 TEST_CASE("window cost: the guidance gradient matches central finite differences of the cost") {

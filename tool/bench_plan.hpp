@@ -82,11 +82,12 @@ inline int bench_plan(Args& a) {
                     "random empty worlds: half-size 1.2 up to 8 robots, 2.4 up to 32, 3.4 beyond; scenes x robots\n"
                     "per scene as the planner chose (automatic neighbourhoods); ms/plan: a first plan (line start: the\n"
                     "last W steps from straight lines; else all S); warm_ms: a plan 8 steps after the last, warm-started;\n"
+                    "new_ms: a first plan of a new world on the same map (new goals: their goal fields are made);\n"
                     "expert: the guided expert's ms per plan; GFLOP/s: of a first plan\n"
-                    "%4s %6s %10s %10s %10s %10s %8s\n",
+                    "%4s %6s %10s %10s %10s %10s %10s %8s\n",
                     model_path.empty() ? "default config (random weights: time does not depend on them)" : model_path.c_str(), S, guidance, keep_right, candidates,
                     warm_start, line_start ? 1 : 0, config.channels[0], config.dim * config.kernel, config.dim * config.kernel, config.horizon * 8, gemm, "n",
-                    "scenes", "ms/plan", "warm_ms", "expert_ms", "GFLOP/s", "of GEMM");
+                    "scenes", "ms/plan", "warm_ms", "new_ms", "expert_ms", "GFLOP/s", "of GEMM");
     double robot_ms = 0, robot_warm_ms = 0;
     int robot_K = 0;
     for (long n : teams) {
@@ -101,7 +102,8 @@ inline int bench_plan(Args& a) {
         // DDIM steps of a first plan: with line start and warm start on, the last W, else all S.
         const int first_steps = line_start && planner.sampler.warm_starts() ? warm_start : S;
         // Larger teams need a larger world to spawn in (starts and goals 0.25 apart).
-        madbp::World world = madbp::make_random_world("empty", (int)n, seed, n > 32 ? 3.4 : n > 8 ? 2.4 : 1.2);
+        const double half_size = n > 32 ? 3.4 : n > 8 ? 2.4 : 1.2;
+        madbp::World world = madbp::make_random_world("empty", (int)n, seed, half_size);
         madbp::Plan plan;
         for (int i = 0; i < 3; ++i) planner.plan_into(world, plan);  // warm-up: workspaces take their sizes
         auto t0 = std::chrono::steady_clock::now();
@@ -118,7 +120,16 @@ inline int bench_plan(Args& a) {
             planner.plan_into(later, plan);
             warm_secs += std::chrono::duration<double>(std::chrono::steady_clock::now() - w0).count();
         }
-        const double ms = 1000 * secs / plans, warm_ms = 1000 * warm_secs / plans, rate = plan_flops(config, per_scene, first_steps) * scenes * candidates / (secs / plans) / 1e9;
+        // New worlds: what a plan costs when the team has just been given new goals (an episode's
+        // first plan), the goal fields of the window cost's guidance included.
+        double new_secs = 0;
+        for (int i = 0; i < plans; ++i) {
+            const madbp::World fresh = madbp::make_random_world("empty", (int)n, seed + 1 + (uint64_t)i, half_size);
+            auto f0 = std::chrono::steady_clock::now();
+            planner.plan_into(fresh, plan);
+            new_secs += std::chrono::duration<double>(std::chrono::steady_clock::now() - f0).count();
+        }
+        const double ms = 1000 * secs / plans, warm_ms = 1000 * warm_secs / plans, new_ms = 1000 * new_secs / plans, rate = plan_flops(config, per_scene, first_steps) * scenes * candidates / (secs / plans) / 1e9;
         // The guided expert on the same world: mean ms per plan over `plans` / 5 plans (at least 3).
         madbp::GuidedExpert expert(world.map());
         madbp::World ew = world;
@@ -148,10 +159,10 @@ inline int bench_plan(Args& a) {
         }
         if (json)
             std::printf("%s\n", Json().add("bench", "plan").add("agents", n).add("scenes", scenes).add("per_scene", per_scene).add("sample_steps", S)
-                                    .add("guidance", guidance).add("keep_right", keep_right).add("candidates", candidates).add("warm_start", warm_start).add("line_start", line_start ? 1 : 0).add("ms_per_plan", ms).add("warm_ms_per_plan", warm_ms).add("expert_ms_per_plan", expert_ms)
+                                    .add("guidance", guidance).add("keep_right", keep_right).add("candidates", candidates).add("warm_start", warm_start).add("line_start", line_start ? 1 : 0).add("ms_per_plan", ms).add("warm_ms_per_plan", warm_ms).add("new_world_ms_per_plan", new_ms).add("expert_ms_per_plan", expert_ms)
                                     .add("gflops", rate).add("gemm_gflops", gemm).add("share_of_gemm", rate / gemm).line().c_str());
         else
-            std::printf("%4ld %3dx%-2d %10.3f %10.3f %10.3f %10.1f %7.0f%%\n", n, scenes, per_scene, ms, warm_ms, expert_ms, rate, 100 * rate / gemm);
+            std::printf("%4ld %3dx%-2d %10.3f %10.3f %10.3f %10.3f %10.1f %7.0f%%\n", n, scenes, per_scene, ms, warm_ms, new_ms, expert_ms, rate, 100 * rate / gemm);
         std::fflush(stdout);
     }
     if (robot_K > 0) {
