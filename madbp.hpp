@@ -104,8 +104,9 @@
 //        where that is fewer) and kDefaultWarmStart 4 (was 5 of the model's 10): a plan runs 4
 //        network passes instead of 5, from the same noise level.
 //        MapFields' goal fields (the guidance's distance to a goal around obstacles) are made
-//        with a bucket queue (Dial's algorithm) instead of a binary heap: the same distances to
-//        the bit, 4-5x faster; a first plan after new goals costs half what it did.
+//        with a bucket queue (Dial's algorithm) instead of a binary heap (the same distances to
+//        the bit, 4-5x faster), on every other node of the clearance field (MapFields::goal_grid,
+//        kGoalStride): a goal field costs 0.1 ms instead of 1.7-2.5 in the standard world.
 //   0.1  neural-network core, safetensors checkpoints, MA-DBP model, DDIM sampler, planner.
 
 #ifndef MADBP_HPP
@@ -2756,16 +2757,33 @@ constexpr bool kDefaultLineStart = true;
 // (DiffusionPlanner::passage_replan): tuned on seeds 1000-1199 (docs/experiments.md, "Turns on time").
 constexpr int kDefaultPassageReplan = 4;
 
+// A square grid of nodes over the world, (x, y) = (lo + col * cell, lo + row * cell), row-major
+// from the lowest y, and bilinear interpolation of values given at its nodes.
+struct NodeGrid {
+    int nodes = 0;              // per side; 0 = not built
+    double lo = 0, cell = 0;    // first node's coordinate on both axes; node spacing (world units)
+
+    // Bilinear interpolation of `values` given at this grid's nodes, and its gradient.
+    double interpolate(const std::vector<float>& values, double x, double y, double* gx = nullptr, double* gy = nullptr) const {
+        MADBP_ASSERT(nodes >= 2 && values.size() == (size_t)nodes * nodes);
+        const double u = (x - lo) / cell, v = (y - lo) / cell;
+        const int col = std::clamp((int)std::floor(u), 0, nodes - 2), row = std::clamp((int)std::floor(v), 0, nodes - 2);
+        const double fx = u - col, fy = v - row;
+        const float* p = values.data() + (size_t)row * nodes + col;
+        const double d00 = p[0], d10 = p[1], d01 = p[nodes], d11 = p[nodes + 1];
+        if (gx) *gx = ((1 - fy) * (d10 - d00) + fy * (d11 - d01)) / cell;
+        if (gy) *gy = ((1 - fx) * (d01 - d00) + fx * (d11 - d10)) / cell;
+        return (1 - fy) * ((1 - fx) * d00 + fx * d10) + fy * ((1 - fx) * d01 + fx * d11);
+    }
+};
+
 // The map's clearance (static_clearance: distance to the nearest obstacle or wall surface,
 // world units, negative inside) sampled at the nodes of a square grid of spacing `cell` over the
 // world and a border of `pad`, read with bilinear interpolation, which also gives the gradient
 // (values continuous; the gradient jumps only across cell lines). Beyond the border a cell's
-// plane is extended. Nodes: (x, y) = (lo + col * cell, lo + row * cell), row-major from the
-// lowest y, at most kMaxNodes a side (a huge world gets coarser cells).
-struct DistanceField {
+// plane is extended. At most kMaxNodes a side (a huge world gets coarser cells).
+struct DistanceField : NodeGrid {
     static constexpr int kMaxNodes = 512;
-    int nodes = 0;              // per side; 0 = not built
-    double lo = 0, cell = 0;    // first node's coordinate on both axes; node spacing (world units)
     WorldMap map;                    // the map it was built from
     std::vector<float> d;       // (nodes * nodes) clearance at the nodes
 
@@ -2786,41 +2804,43 @@ struct DistanceField {
     bool built_for(const WorldMap& m) const { return nodes > 0 && m == map; }
     // Clearance at (x, y), world units; its gradient in *gx, *gy when given.
     double value(double x, double y, double* gx = nullptr, double* gy = nullptr) const { return interpolate(d, x, y, gx, gy); }
-    // Bilinear interpolation of `values` given at this grid's nodes, and its gradient.
-    double interpolate(const std::vector<float>& values, double x, double y, double* gx = nullptr, double* gy = nullptr) const {
-        MADBP_ASSERT(nodes >= 2 && values.size() == (size_t)nodes * nodes);
-        const double u = (x - lo) / cell, v = (y - lo) / cell;
-        const int col = std::clamp((int)std::floor(u), 0, nodes - 2), row = std::clamp((int)std::floor(v), 0, nodes - 2);
-        const double fx = u - col, fy = v - row;
-        const float* p = values.data() + (size_t)row * nodes + col;
-        const double d00 = p[0], d10 = p[1], d01 = p[nodes], d11 = p[nodes + 1];
-        if (gx) *gx = ((1 - fy) * (d10 - d00) + fy * (d11 - d01)) / cell;
-        if (gy) *gy = ((1 - fx) * (d01 - d00) + fx * (d11 - d10)) / cell;
-        return (1 - fy) * ((1 - fx) * d00 + fx * d10) + fy * ((1 - fx) * d01 + fx * d11);
-    }
 };
 
 // What the window cost reads of the map: the clearance field, and the distance to each goal
-// around the obstacles (a "goal field": Dijkstra over the clearance field's nodes, 8-connected,
-// a step through a node closer than `radius` to the map costing kBlockedFactor times its
-// length), on the same nodes and read the same way. Goal fields are made by add_goals and kept
-// for the map (at most kMaxGoalFields; then the cache starts again).
+// around the obstacles (a "goal field": Dijkstra over goal_grid, every kGoalStride-th node of the
+// clearance field's each way, 8-connected, a step into a node closer than `radius` to the map
+// costing kBlockedFactor times its length), read the same way. Goal fields are made by add_goals
+// and kept for the map (at most kMaxGoalFields; then the cache starts again).
 struct MapFields {
     static constexpr int kMaxGoalFields = 256;
     static constexpr double kBlockedFactor = 20;
+    // Goal fields on every other node (cell 0.04 in the standard world): a quarter of the nodes,
+    // so a first plan after new goals costs about a warm plan more instead of two; the tuning suite
+    // was level (docs/experiments.md, "Goal fields in buckets").
+    static constexpr int kGoalStride = 2;
     struct GoalField {
         double x = 0, y = 0;        // the goal, world units (as decoded from a SceneBatch)
-        std::vector<float> d;       // (nodes * nodes) distance to the goal
+        std::vector<float> d;       // (goal_grid.nodes^2) distance to the goal
     };
     DistanceField clearance;
+    NodeGrid goal_grid;             // the goal fields' nodes
     std::vector<GoalField> goals;
 
     // (Re)builds the clearance field, and forgets the goal fields, when the map differs from the last one.
     void set_map(const WorldMap& map) {
         if (clearance.built_for(map)) return;
         clearance.build(map);
+        goal_grid.nodes = (clearance.nodes - 1 + kGoalStride - 1) / kGoalStride + 1;
+        goal_grid.lo = clearance.lo;
+        goal_grid.cell = clearance.cell * kGoalStride;
         goals.clear();
         steps_radius_ = -1;  // the step lengths are the old map's
+    }
+    // The clearance at goal-grid node (row, col): the clearance field's node there (its last
+    // row or column where the goal grid reaches past it).
+    float clearance_at_goal_node(int row, int col) const {
+        const int N = clearance.nodes;
+        return clearance.d[(size_t)std::min(row * kGoalStride, N - 1) * N + std::min(col * kGoalStride, N - 1)];
     }
     // The field of the goal at (x, y), matched within kGoalMatch: goals are decoded from a
     // SceneBatch, whose Local frame moves with the robots, so the same goal differs in the last bits.
@@ -2846,33 +2866,35 @@ struct MapFields {
     }
     // Distance to goal field g's goal at (x, y), and its gradient.
     double goal_distance(const GoalField& g, double x, double y, double* gx = nullptr, double* gy = nullptr) const {
-        return clearance.interpolate(g.d, x, y, gx, gy);
+        return goal_grid.interpolate(g.d, x, y, gx, gy);
     }
 
 private:
     // Dijkstra's queue as buckets of one cell's width (Dial's algorithm), reused: bucket
     // band % size holds the (distance, node) entries of distance band `band` = floor(d / cell).
     std::vector<std::vector<std::pair<float, int>>> buckets_;
-    // Per node, the length of a straight and of a diagonal step into it, for steps_radius_.
+    // Per goal-grid node, the length of a straight and of a diagonal step into it, for steps_radius_.
     std::vector<double> into_straight_, into_diagonal_;
     double steps_radius_ = -1;
 
-    // Dijkstra over the nodes from the four around the goal. Every step is at least one cell
-    // long, so the nodes of a distance band are final before the band is expanded, and the
-    // buckets give a heap's order without its log factor (a goal field of the standard world:
-    // 1.7-2.5 ms with a binary heap, 0.4-0.5 ms so; docs/speed.md). Stale entries are skipped.
+    // Dijkstra over the goal grid's nodes from the four around the goal. Every step is at least
+    // one cell long, so the nodes of a distance band are final before the band is expanded, and
+    // the buckets give a heap's order without its log factor (a goal field of the standard world
+    // on every clearance node: 1.7-2.5 ms with a binary heap, 0.4-0.5 ms so; docs/speed.md).
+    // Stale entries are skipped.
     void build_goal(GoalField& g, double radius) {
-        const DistanceField& f = clearance;
+        const NodeGrid& f = goal_grid;
         const int N = f.nodes;
         const size_t nodes = (size_t)N * N;
         if (steps_radius_ != radius || into_straight_.size() != nodes) {
             into_straight_.resize(nodes);
             into_diagonal_.resize(nodes);
-            for (size_t k = 0; k < nodes; ++k) {
-                const double blocked = f.d[k] < radius ? kBlockedFactor : 1.0;
-                into_straight_[k] = 1.0 * f.cell * blocked;
-                into_diagonal_[k] = std::sqrt(2.0) * f.cell * blocked;
-            }
+            for (int row = 0; row < N; ++row)
+                for (int col = 0; col < N; ++col) {
+                    const double blocked = clearance_at_goal_node(row, col) < radius ? kBlockedFactor : 1.0;
+                    into_straight_[(size_t)row * N + col] = 1.0 * f.cell * blocked;
+                    into_diagonal_[(size_t)row * N + col] = std::sqrt(2.0) * f.cell * blocked;
+                }
             steps_radius_ = radius;
         }
         g.d.assign(nodes, std::numeric_limits<float>::infinity());
