@@ -2886,7 +2886,7 @@ private:
         const NodeGrid& f = goal_grid;
         const int N = f.nodes;
         const size_t nodes = (size_t)N * N;
-        if (steps_radius_ != radius || into_straight_.size() != nodes) {
+        if (steps_radius_ != radius) {  // set_map forgets them with the map
             into_straight_.resize(nodes);
             into_diagonal_.resize(nodes);
             for (int row = 0; row < N; ++row)
