@@ -107,6 +107,9 @@
 //        with a bucket queue (Dial's algorithm) instead of a binary heap (the same distances to
 //        the bit, 4-5x faster), on every other node of the clearance field (MapFields::goal_grid,
 //        kGoalStride): a goal field costs 0.1 ms instead of 1.7-2.5 in the standard world.
+//        DiffusionPlanner::small_plan_candidates (kDefaultSmallPlanCandidates 2): a plan of at
+//        most kSmallPlanWindows = 4 robot windows keeps the best of 2 windows per scene
+//        (last_plan_candidates); larger plans draw sampler.candidates as before.
 //   0.1  neural-network core, safetensors checkpoints, MA-DBP model, DDIM sampler, planner.
 
 #ifndef MADBP_HPP
@@ -2756,6 +2759,12 @@ constexpr bool kDefaultLineStart = true;
 // How soon a plan asks to be replaced while robots may meet in a one-lane passage
 // (DiffusionPlanner::passage_replan): tuned on seeds 1000-1199 (docs/experiments.md, "Turns on time").
 constexpr int kDefaultPassageReplan = 4;
+// Best of 2 for small plans (DiffusionPlanner::small_plan_candidates): a plan of at most
+// kSmallPlanWindows robot windows draws 2 candidates per scene, a batch no larger than a team of 8
+// planned as one scene, whose plan time is the speed target. Tuned on seeds 1000-1299
+// (docs/experiments.md, "Best of two for small teams").
+constexpr int kSmallPlanWindows = 4;
+constexpr int kDefaultSmallPlanCandidates = 2;
 
 // A square grid of nodes over the world, (x, y) = (lo + col * cell, lo + row * cell), row-major
 // from the lowest y, and bilinear interpolation of values given at its nodes.
@@ -3379,6 +3388,12 @@ public:
     // SamplerConfig::warm_start W a first plan too runs only the last W DDIM steps: half the time
     // of a cold plan, at the same success on the tuning suite (docs/experiments.md, "Line start").
     bool line_start = kDefaultLineStart;
+    // Candidates (SamplerConfig::candidates, best of k) for small plans: a plan of at most
+    // kSmallPlanWindows robot windows (one scene of up to 4 robots; a scene per robot for up to 2)
+    // draws at least this many per scene. A robot's plan_robot counts as its team's plan would.
+    // 1 = sampler.candidates for every plan.
+    int small_plan_candidates = kDefaultSmallPlanCandidates;
+    int last_plan_candidates() const { return last_k_; }  // candidates per scene the last plan drew
     // What the last plan (or plan_robot) asks: passage_replan while robots may meet in a passage, else 0.
     int replan_after() const {
         if (passage_replan <= 0 || !take_turns) return 0;
@@ -3546,6 +3561,7 @@ private:
     std::vector<int> last_ids_;
     std::vector<std::vector<Vec2>> last_windows_;
     long last_t_ = -1, now_ = -1;
+    int last_k_ = 1;  // last_plan_candidates
     Mat warm_;  // (2, H * scenes * K) the warm windows
 
     // key_: each robot's route steps (RouteGuide::route_steps) from where this planner first saw
@@ -3631,8 +3647,15 @@ private:
             }
             batch_.count[b] = m;
         }
-        if (sampler.conflict_aware()) conflict_.set_map(map);  // the distance field, once per map
-        sample_windows(model_, schedule_, batch_, sampler, rng_, x_, eps_, steps_, &conflict_, warm ? &warm_ : nullptr);
+        // The team's robot windows: a scene per robot (plan_robot's team too), or one scene.
+        if (small_plan_candidates < 1 || small_plan_candidates > kMaxCandidates)
+            throw std::invalid_argument("planner small_plan_candidates: must be in [1, kMaxCandidates = " + std::to_string(kMaxCandidates) +
+                                        "] (got " + std::to_string(small_plan_candidates) + ")");
+        SamplerConfig sc = sampler;
+        if ((local ? n : 1) * std::min(K, n) <= kSmallPlanWindows) sc.candidates = std::max(sc.candidates, small_plan_candidates);
+        last_k_ = sc.candidates;
+        if (sc.conflict_aware()) conflict_.set_map(map);  // the distance field, once per map
+        sample_windows(model_, schedule_, batch_, sc, rng_, x_, eps_, steps_, &conflict_, warm ? &warm_ : nullptr);
     }
 
     // Agent a's columns of warm_ from robot i's last window (detail::warm_window); false without one.

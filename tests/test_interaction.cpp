@@ -749,6 +749,53 @@ TEST_CASE("planner: conflict-aware and warm-started plans allocate nothing in th
     CHECK(planner.last_candidates().fields.goals.size() == 4);
 }
 
+TEST_CASE("planner: a plan of at most 4 robot windows draws small_plan_candidates; a larger one sampler.candidates") {
+    const ModelConfig c = tiny_config();  // n_max 6
+    CHECK(kDefaultSmallPlanCandidates == 2);
+    auto drawn = [&](int n, int small, int candidates, Plan* out = nullptr) {
+        DiffusionPlanner planner(MadbpModel(c, 1), 3);
+        planner.small_plan_candidates = small;
+        planner.sampler.candidates = candidates;
+        const Plan p = planner.plan(make_random_world("obstacles", n, 5));
+        if (out) *out = p;
+        CHECK(planner.last_candidates().cost.size() == (size_t)planner.last_plan_candidates());  // one scene: k costs
+        return planner.last_plan_candidates();
+    };
+    CHECK(drawn(1, 2, 1) == 2);
+    CHECK(drawn(4, 2, 1) == 2);
+    CHECK(drawn(4, 2, 3) == 3);  // never fewer than sampler.candidates
+    CHECK(drawn(4, 1, 1) == 1);  // off
+    CHECK(drawn(5, 2, 1) == 1);  // one scene of 5: the batch of a team of 8 would grow
+    // The same plan as a planner told to draw 2 for every plan: the rule only picks k.
+    Plan small, every;
+    drawn(4, 2, 1, &small);
+    drawn(4, 1, 2, &every);
+    for (int i = 0; i < 4; ++i)
+        for (size_t t = 0; t < small.waypoints[i].size(); ++t) {
+            CHECK(small.waypoints[i][t].x == every.waypoints[i][t].x);
+            CHECK(small.waypoints[i][t].y == every.waypoints[i][t].y);
+        }
+    // A scene per robot counts the team's windows (n scenes): a pair in a larger world draws 2,
+    // three robots draw 1, and plan_robot counts as its team's plan would.
+    for (int n : {2, 3}) {
+        const World w = make_random_world("obstacles", n, 5, 2.4);
+        DiffusionPlanner team(MadbpModel(c, 1), 3), robot(MadbpModel(c, 1), 3);
+        team.plan(w);
+        CHECK(team.last_scene_batch().B == n);
+        CHECK(team.last_plan_candidates() == (n == 2 ? 2 : 1));
+        std::vector<DiffusionPlanner::Neighbour> others;
+        for (int j = 1; j < n; ++j) others.push_back({w.agents()[j].pos, w.agents()[j].goal, {0, 0}, w.agents()[j].id});
+        std::vector<Vec2> window;
+        robot.plan_robot(w.map(), w.agents()[0].id, w.agents()[0].pos, w.agents()[0].goal, others, window);
+        CHECK(robot.last_plan_candidates() == team.last_plan_candidates());
+    }
+    DiffusionPlanner bad(MadbpModel(c, 1), 3);
+    bad.small_plan_candidates = 0;
+    CHECK_THROWS_WITH_AS(bad.plan(make_random_world("obstacles", 2, 5)), doctest::Contains("small_plan_candidates"), std::invalid_argument);
+    bad.small_plan_candidates = kMaxCandidates + 1;  // refused for a large team too, where the rule does not apply
+    CHECK_THROWS_WITH_AS(bad.plan(make_random_world("obstacles", 6, 5)), doctest::Contains("small_plan_candidates"), std::invalid_argument);
+}
+
 TEST_CASE("velocity context: in the pose, mirrored in training, read by the planner; off by default") {
     ModelConfig c = tiny_config();
     CHECK_FALSE(c.velocity_context);
@@ -1085,6 +1132,7 @@ TEST_CASE("planner: a warm start draws each robot's window from its last one shi
         p->sampler.guidance = 0;
         p->sampler.end_bend = 0;
         p->line_start = false;
+        p->small_plan_candidates = 1;  // one window a robot, as the hand-drawn reference
     }
     warm.sampler.warm_start = 2;  // of the tiny model's 5 steps
     // The same draws by hand: the reference sampler's rng and model.
@@ -1125,6 +1173,7 @@ TEST_CASE("planner: line_start: a robot without a last window starts from a stra
     planner.sampler.guidance = 0;  // the plain path
     planner.sampler.end_bend = 0;
     planner.sampler.warm_start = 2;  // of the tiny model's 5 DDIM steps
+    planner.small_plan_candidates = 1;  // one window a robot, as the hand-drawn reference
     MadbpModel copy(c, 2);
     copy.set_training(false);
     NoiseSchedule sched(c.diffusion_steps);

@@ -66,6 +66,7 @@ inline int bench_plan(Args& a) {
     uint64_t seed = (uint64_t)a.integer("--seed", 0, 0);
     const double guidance = a.real("--guidance", madbp::kDefaultGuidance, 0, 1e6);
     const int candidates = (int)a.integer("--candidates", 1, 1, madbp::kMaxCandidates);
+    const int small_plan_candidates = (int)a.integer("--small-plan-candidates", madbp::kDefaultSmallPlanCandidates, 1, madbp::kMaxCandidates);
     const double keep_right = a.real("--keep-right", madbp::kDefaultKeepRight, 0, 1e6);
     const int warm_start = (int)a.integer("--warm-start", madbp::kDefaultWarmStart, 0, 1000);
     const bool line_start = a.integer("--line-start", madbp::kDefaultLineStart ? 1 : 0, 0, 1) != 0;
@@ -78,15 +79,16 @@ inline int bench_plan(Args& a) {
     // The GEMM of the first down block's convolution for 8 agents: (C0, D*k) x (D*k, H*8).
     const double gemm = eigen_gemm_rate(config.channels[0], config.dim * config.kernel, config.horizon * 8);
     if (!json)
-        std::printf("plan bench: %s, S = %d, guidance %g, keep-right %g, candidates %d, warm start %d, line start %d, one thread; Eigen GEMM %dx%d * %dx%d: %.1f GFLOP/s\n"
+        std::printf("plan bench: %s, S = %d, guidance %g, keep-right %g, candidates %d (plans of <= %d robot windows %d), warm start %d, line start %d, one thread;\n"
+                    "Eigen GEMM %dx%d * %dx%d: %.1f GFLOP/s\n"
                     "random empty worlds: half-size 1.2 up to 8 robots, 2.4 up to 32, 3.4 beyond; scenes x robots\n"
-                    "per scene as the planner chose (automatic neighbourhoods); ms/plan: a first plan (line start: the\n"
+                    "per scene (x candidates) as the planner chose (automatic neighbourhoods); ms/plan: a first plan (line start: the\n"
                     "last W steps from straight lines; else all S); warm_ms: a plan 8 steps after the last, warm-started;\n"
                     "new_ms: a first plan of a new world on the same map (new goals: their goal fields are made);\n"
                     "expert: the guided expert's ms per plan; GFLOP/s: of a first plan\n"
                     "%4s %6s %10s %10s %10s %10s %10s %8s\n",
                     model_path.empty() ? "default config (random weights: time does not depend on them)" : model_path.c_str(), S, guidance, keep_right, candidates,
-                    warm_start, line_start ? 1 : 0, config.channels[0], config.dim * config.kernel, config.dim * config.kernel, config.horizon * 8, gemm, "n",
+                    madbp::kSmallPlanWindows, small_plan_candidates, warm_start, line_start ? 1 : 0, config.channels[0], config.dim * config.kernel, config.dim * config.kernel, config.horizon * 8, gemm, "n",
                     "scenes", "ms/plan", "warm_ms", "new_ms", "expert_ms", "GFLOP/s", "of GEMM");
     double robot_ms = 0, robot_warm_ms = 0;
     int robot_K = 0;
@@ -96,6 +98,7 @@ inline int bench_plan(Args& a) {
         planner.sampler.sample_steps = S;
         planner.sampler.guidance = (float)guidance;
         planner.sampler.candidates = candidates;
+        planner.small_plan_candidates = small_plan_candidates;
         planner.sampler.keep_right = (float)keep_right;
         planner.sampler.warm_start = warm_start;
         planner.line_start = line_start;
@@ -129,7 +132,7 @@ inline int bench_plan(Args& a) {
             planner.plan_into(fresh, plan);
             new_secs += std::chrono::duration<double>(std::chrono::steady_clock::now() - f0).count();
         }
-        const double ms = 1000 * secs / plans, warm_ms = 1000 * warm_secs / plans, new_ms = 1000 * new_secs / plans, rate = plan_flops(config, per_scene, first_steps) * scenes * candidates / (secs / plans) / 1e9;
+        const double ms = 1000 * secs / plans, warm_ms = 1000 * warm_secs / plans, new_ms = 1000 * new_secs / plans, rate = plan_flops(config, per_scene, first_steps) * scenes * planner.last_plan_candidates() / (secs / plans) / 1e9;
         // The guided expert on the same world: mean ms per plan over `plans` / 5 plans (at least 3).
         madbp::GuidedExpert expert(world.map());
         madbp::World ew = world;
@@ -159,10 +162,11 @@ inline int bench_plan(Args& a) {
         }
         if (json)
             std::printf("%s\n", Json().add("bench", "plan").add("agents", n).add("scenes", scenes).add("per_scene", per_scene).add("sample_steps", S)
-                                    .add("guidance", guidance).add("keep_right", keep_right).add("candidates", candidates).add("warm_start", warm_start).add("line_start", line_start ? 1 : 0).add("ms_per_plan", ms).add("warm_ms_per_plan", warm_ms).add("new_world_ms_per_plan", new_ms).add("expert_ms_per_plan", expert_ms)
+                                    .add("guidance", guidance).add("keep_right", keep_right).add("candidates", planner.last_plan_candidates()).add("warm_start", warm_start).add("line_start", line_start ? 1 : 0).add("ms_per_plan", ms).add("warm_ms_per_plan", warm_ms).add("new_world_ms_per_plan", new_ms).add("expert_ms_per_plan", expert_ms)
                                     .add("gflops", rate).add("gemm_gflops", gemm).add("share_of_gemm", rate / gemm).line().c_str());
         else
-            std::printf("%4ld %3dx%-2d %10.3f %10.3f %10.3f %10.3f %10.1f %7.0f%%\n", n, scenes, per_scene, ms, warm_ms, new_ms, expert_ms, rate, 100 * rate / gemm);
+            std::printf("%4ld %6s %10.3f %10.3f %10.3f %10.3f %10.1f %7.0f%%\n", n,
+                        (std::to_string(scenes) + "x" + std::to_string(per_scene) + (planner.last_plan_candidates() > 1 ? "x" + std::to_string(planner.last_plan_candidates()) : "")).c_str(), ms, warm_ms, new_ms, expert_ms, rate, 100 * rate / gemm);
         std::fflush(stdout);
     }
     if (robot_K > 0) {

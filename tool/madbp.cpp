@@ -267,8 +267,9 @@ int cmd_bench(Args& a) {
             "  --plan         benchmark the diffusion planner instead: ms per plan and GFLOP/s against\n"
             "                 Eigen's GEMM (allocations: build/bench_alloc); with --agents LIST (default\n"
             "                 1,2,4,8,16,32), --plans N, --sample-steps S, --model FILE, --guidance W,\n"
-            "                 --keep-right K, --candidates K, --warm-start W, --line-start 0|1 (as for eval\n"
-            "                 --method madbp; ms/plan is a first plan, warm_ms a plan 8 steps later)\n"
+            "                 --keep-right K, --candidates K, --small-plan-candidates K, --warm-start W,\n"
+            "                 --line-start 0|1 (as for eval --method madbp; ms/plan is a first plan,\n"
+            "                 warm_ms a plan 8 steps later)\n"
             "  --json         one JSON object per thread count\n");
         return 0;
     }

@@ -22,6 +22,7 @@ struct PlannerOptions {
     double sensing_radius = 0; // DiffusionPlanner::sensing_radius (0: 2 x the model's position_scale)
     double guidance = madbp::kDefaultGuidance;  // SamplerConfig::guidance (0: off)
     int candidates = 1;        // SamplerConfig::candidates (1: off)
+    int small_plan_candidates = madbp::kDefaultSmallPlanCandidates;  // DiffusionPlanner::small_plan_candidates (1: off)
     double keep_right = madbp::kDefaultKeepRight;  // SamplerConfig::keep_right (0: off)
     double end_bend = madbp::kDefaultEndBend;  // SamplerConfig::end_bend (0: off)
     madbp::WindowCost cost;    // SamplerConfig::cost
@@ -59,6 +60,7 @@ inline PlannerOptions read_planner_options(Args& a) {
     o.sensing_radius = a.real("--sensing-radius", 0, 0, 1000);
     o.guidance = a.real("--guidance", madbp::kDefaultGuidance, 0, 1e6);
     o.candidates = (int)a.integer("--candidates", 1, 1, madbp::kMaxCandidates);
+    o.small_plan_candidates = (int)a.integer("--small-plan-candidates", o.small_plan_candidates, 1, madbp::kMaxCandidates);
     o.keep_right = a.real("--keep-right", madbp::kDefaultKeepRight, 0, 1e6);
     o.end_bend = a.real("--end-bend", o.end_bend, 0, 1);
     read_cost_weights(a.str("--cost-weights", ""), o.cost);
@@ -94,6 +96,7 @@ inline std::unique_ptr<madbp::DiffusionPlanner> make_planner(const madbp::MadbpM
     planner->sensing_radius = o.sensing_radius;
     planner->sampler.guidance = (float)o.guidance;
     planner->sampler.candidates = o.candidates;
+    planner->small_plan_candidates = o.small_plan_candidates;
     planner->sampler.keep_right = (float)o.keep_right;
     planner->sampler.end_bend = (float)o.end_bend;
     planner->sampler.cost = o.cost;
@@ -190,7 +193,9 @@ inline void register_nn_methods(std::vector<Method>& m) {
                  "                    farther than R are left out; default 2 x the model's position scale, 2.4),\n"
                  "                    conflict-aware sampling (issue 12): --guidance W (each DDIM step moves\n"
                  "                    x0_hat's waypoints by -W * d cost / d waypoint; default 0.004, 0 = off), --candidates K\n"
-                 "                    (best of K windows per scene), --cost-weights A,M,G (robot-robot, robot-map,\n"
+                 "                    (best of K windows per scene; default 1), --small-plan-candidates K (at least K for\n"
+                 "                    a plan of at most 4 robot windows: one scene of <= 4 robots; default 2, 1 = off),\n"
+                 "                    --cost-weights A,M,G (robot-robot, robot-map,\n"
                  "                    goal; default 100,100,200), --cost-margin M (robot-robot, default 0.05),\n"
                  "                    --keep-right K (robots meeting in the guided windows are also pushed to the\n"
                  "                    right of their relative motion, so they pass; default 500, 0 = off),\n"
