@@ -3589,6 +3589,9 @@ private:
         if (K > c.n_max)
             throw std::invalid_argument("planner: " + std::to_string(K) + " agents per scene exceed the model's n_max = " + std::to_string(c.n_max) +
                                         (local ? "" : "; larger teams need neighbourhood planning (neighbours = K <= n_max, --neighbours K)"));
+        if (small_plan_candidates < 1 || small_plan_candidates > kMaxCandidates)
+            throw std::invalid_argument("planner: small_plan_candidates must be in [1, kMaxCandidates = " + std::to_string(kMaxCandidates) +
+                                        "] (got " + std::to_string(small_plan_candidates) + ")");
         const bool shared = c.frame == SceneFrame::World;  // one grid for every scene
         if (batch_.B != scenes || batch_.n != K || batch_.shared_grid != shared) {  // new buffers, grid redrawn
             batch_.resize(scenes, K, c, shared);
@@ -3647,10 +3650,8 @@ private:
             }
             batch_.count[b] = m;
         }
-        // The team's robot windows: a scene per robot (plan_robot's team too), or one scene.
-        if (small_plan_candidates < 1 || small_plan_candidates > kMaxCandidates)
-            throw std::invalid_argument("planner small_plan_candidates: must be in [1, kMaxCandidates = " + std::to_string(kMaxCandidates) +
-                                        "] (got " + std::to_string(small_plan_candidates) + ")");
+        // Small plans draw small_plan_candidates. The team's robot windows: a scene per robot
+        // (local; plan_robot's one scene stands for its team's n), or one scene of them all.
         SamplerConfig sc = sampler;
         if ((local ? n : 1) * std::min(K, n) <= kSmallPlanWindows) sc.candidates = std::max(sc.candidates, small_plan_candidates);
         last_k_ = sc.candidates;

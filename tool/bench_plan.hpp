@@ -132,7 +132,8 @@ inline int bench_plan(Args& a) {
             planner.plan_into(fresh, plan);
             new_secs += std::chrono::duration<double>(std::chrono::steady_clock::now() - f0).count();
         }
-        const double ms = 1000 * secs / plans, warm_ms = 1000 * warm_secs / plans, new_ms = 1000 * new_secs / plans, rate = plan_flops(config, per_scene, first_steps) * scenes * planner.last_plan_candidates() / (secs / plans) / 1e9;
+        const int drawn = planner.last_plan_candidates();  // candidates per scene (small plans draw more)
+        const double ms = 1000 * secs / plans, warm_ms = 1000 * warm_secs / plans, new_ms = 1000 * new_secs / plans, rate = plan_flops(config, per_scene, first_steps) * scenes * drawn / (secs / plans) / 1e9;
         // The guided expert on the same world: mean ms per plan over `plans` / 5 plans (at least 3).
         madbp::GuidedExpert expert(world.map());
         madbp::World ew = world;
@@ -162,11 +163,12 @@ inline int bench_plan(Args& a) {
         }
         if (json)
             std::printf("%s\n", Json().add("bench", "plan").add("agents", n).add("scenes", scenes).add("per_scene", per_scene).add("sample_steps", S)
-                                    .add("guidance", guidance).add("keep_right", keep_right).add("candidates", planner.last_plan_candidates()).add("warm_start", warm_start).add("line_start", line_start ? 1 : 0).add("ms_per_plan", ms).add("warm_ms_per_plan", warm_ms).add("new_world_ms_per_plan", new_ms).add("expert_ms_per_plan", expert_ms)
+                                    .add("guidance", guidance).add("keep_right", keep_right).add("candidates", drawn).add("warm_start", warm_start).add("line_start", line_start ? 1 : 0).add("ms_per_plan", ms).add("warm_ms_per_plan", warm_ms).add("new_world_ms_per_plan", new_ms).add("expert_ms_per_plan", expert_ms)
                                     .add("gflops", rate).add("gemm_gflops", gemm).add("share_of_gemm", rate / gemm).line().c_str());
-        else
-            std::printf("%4ld %6s %10.3f %10.3f %10.3f %10.3f %10.1f %7.0f%%\n", n,
-                        (std::to_string(scenes) + "x" + std::to_string(per_scene) + (planner.last_plan_candidates() > 1 ? "x" + std::to_string(planner.last_plan_candidates()) : "")).c_str(), ms, warm_ms, new_ms, expert_ms, rate, 100 * rate / gemm);
+        else {
+            const std::string shape = std::to_string(scenes) + "x" + std::to_string(per_scene) + (drawn > 1 ? "x" + std::to_string(drawn) : "");
+            std::printf("%4ld %6s %10.3f %10.3f %10.3f %10.3f %10.1f %7.0f%%\n", n, shape.c_str(), ms, warm_ms, new_ms, expert_ms, rate, 100 * rate / gemm);
+        }
         std::fflush(stdout);
     }
     if (robot_K > 0) {
