@@ -23,7 +23,8 @@ namespace madbp_cli {
 // finish() after reading. A value may start with a single '-' (--goal-reach -0.5: then the
 // reader's range decides); an empty value (--episodes=, --out "") is an error, never the default.
 struct Args {
-    std::map<std::string, std::string> values;
+    std::map<std::string, std::string> values;                 // the last value of each key
+    std::map<std::string, std::vector<std::string>> repeats;   // every value of each key, in order (all())
     std::set<std::string> flags, used;
     std::vector<std::string> positional;
 
@@ -35,9 +36,12 @@ struct Args {
             const std::string& a = args[i];
             if (a.rfind("--", 0) == 0) {
                 auto eq = a.find('=');
-                if (eq != std::string::npos) values[a.substr(0, eq)] = a.substr(eq + 1);
-                else if (i + 1 < n && args[i + 1].rfind("--", 0) != 0) values[a] = args[++i];
-                else flags.insert(a);
+                std::string key = a, value;
+                if (eq != std::string::npos) key = a.substr(0, eq), value = a.substr(eq + 1);
+                else if (i + 1 < n && args[i + 1].rfind("--", 0) != 0) value = args[++i];
+                else { flags.insert(a); continue; }
+                values[key] = value;
+                repeats[key].push_back(value);
             } else {
                 positional.push_back(a);
             }
@@ -47,6 +51,13 @@ struct Args {
         used.insert(key);
         if (values.count(key)) throw std::invalid_argument(key + ": is a flag and takes no value (got '" + values[key] + "')");
         return flags.count(key) > 0;
+    }
+    // Every value of a key that may be given more than once (--set a=1 --set b=2), in order.
+    std::vector<std::string> all(const std::string& key) {
+        used.insert(key);
+        if (flags.count(key)) throw std::invalid_argument(key + ": needs a value");
+        auto it = repeats.find(key);
+        return it == repeats.end() ? std::vector<std::string>{} : it->second;
     }
     bool has(const std::string& key) const { return values.count(key) || flags.count(key); }
     std::string str(const std::string& key, const std::string& def) {
