@@ -113,7 +113,7 @@ model: all $(BUILD)/demos-mix.bin
 dagger: all $(BUILD)/demos-mix.bin
 	@mkdir -p $(BUILD)/dagger
 	$(BUILD)/madbp dagger --data $(BUILD)/demos-mix.bin --out $(BUILD)/dagger/a.safetensors --rounds 4 --episodes 40 \
-	  --scenarios all:0.5 --steps 3000 --threads 2 --priority-weight 1 --resume
+	  --scenarios all:0.5 --steps 3000 --threads 2 --set follower.priority_weight=1 --resume
 
 # libFuzzer targets tests/fuzz_NAME.cpp (ASan + UBSan): checkpoint reader, scene parser,
 # dataset reader. `make fuzz` builds them all (`make fuzz-build` only builds) and runs each for

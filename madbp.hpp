@@ -23,10 +23,15 @@
 //   #include "madbp.hpp"
 //   madbp::World world = madbp::make_random_world("barrier", 4, /*seed=*/0);
 //   madbp::DiffusionPlanner planner(madbp::load_model("models/madbp-default.safetensors"));
-//   madbp::PlanFollower follower([&](const madbp::World& w) { return planner.plan(w); });
+//   madbp::PlanFollower follower = madbp::make_follower(planner);
 //   while (!world.done()) world.step(follower.act(world));   // replans every 8 steps
+// Every setting a plan uses is in planner.settings (PlannerConfig: neighbourhood, sampler,
+// guidance, traffic, follower; Section 7), tuned by default; PlannerConfig::paper() is the
+// paper's planner, and planner_settings() lists every setting with its range and meaning:
+//   madbp::DiffusionPlanner paper(model, /*seed=*/0, madbp::PlannerConfig::paper());
+//   planner.settings.set("guidance.keep_right", "300");     // or planner.settings.guidance.keep_right = 300
 // Worlds larger than the training world and teams larger than n_max plan in neighbourhoods by
-// themselves (DiffusionPlanner::neighbours). One robot planning for itself (decentralised):
+// themselves (settings.neighbourhood). One robot planning for itself (decentralised):
 //   planner.plan_robot(map, my_id, my_pos, my_goal, others /* {pos, goal} received */, window);
 //
 // Use: the layers (SPEC 4)
@@ -69,10 +74,13 @@
 //   4 model parts: ConvBlock, AgentAttention, FilmUNet, StepEmbedding, ContextEncoder,
 //     TrajectoryProcessor                                                              [5]
 //   5 the model: MadbpModel, save_model, load_model                                      [5, 11]
-//   6 diffusion: NoiseSchedule, SamplerConfig, sample_windows (DDIM with inpainting,
-//     guidance, best-of-k, keep-right, end bend, warm start)                            [6]
-//   7 planner: DiffusionPlanner (plan, neighbourhoods, take_turns, passage_replan,
-//     line_start, plan_robot)                                                           [8]
+//   6 diffusion: NoiseSchedule, DistanceField, MapFields, WindowCost, SamplerConfig,
+//     sample_windows (DDIM with inpainting, guidance, best-of-k, keep-right, end bend, warm start) [6]
+//   7 planner settings: TrafficConfig, PlannerConfig (tuned(), paper(), validate, set),
+//     PlannerSetting, planner_settings (the table), kSmallPlanWindows                 [8]
+//   8 traffic conventions: PassageControl (one-lane passages: take turns, go around, queue) [8]
+//   9 planner: DiffusionPlanner (plan, neighbourhoods, plan_robot), make_follower,
+//     DecentralisedTeam                                                                [8]
 //
 // Changelog
 //   0.2  one FilmUNet / ContextEncoder / TrajectoryProcessor; one world-to-model encoder;
@@ -138,6 +146,7 @@
 
 #include <algorithm>
 #include <cerrno>
+#include <chrono>
 #include <cmath>
 #include <cstdint>
 #include <cstdio>
@@ -153,6 +162,7 @@
 #include <string>
 #include <sys/stat.h>
 #include <unistd.h>
+#include <variant>
 #include <vector>
 #ifdef _OPENMP
 #include <omp.h>
@@ -2690,7 +2700,7 @@ inline MadbpModel load_model(const std::string& path) {
 }
 
 // =============================================================================================
-// Diffusion (SPEC 6): cosine schedule, training-time noising, DDIM sampler with inpainting
+// Section 6. Diffusion (SPEC 6): cosine schedule, training-time noising, DDIM sampler with inpainting
 // =============================================================================================
 
 // alpha_bar[k] for k = 0..K (alpha_bar[0] = 1): the cosine schedule of Nichol & Dhariwal
@@ -2733,38 +2743,6 @@ inline float predict_x0(float x_k, float eps, double alpha_bar) {
 
 // Largest SamplerConfig::candidates (the batch grows k-fold).
 constexpr int kMaxCandidates = 64;
-// The guidance DiffusionPlanner samples with (SamplerConfig::guidance; the bare sampler's default
-// is 0, plain DDIM): tuned on seeds 1000-1099 (docs/experiments.md).
-constexpr float kDefaultGuidance = 0.004f;
-// The keep-right push DiffusionPlanner samples with (SamplerConfig::keep_right; the bare sampler's
-// default is 0): tuned on seeds 1000-1099 (docs/experiments.md, "Keep right"); 300 until stop 31,
-// 500 with the follower's lookahead 2.0 (docs/experiments.md, "Pace at the same success").
-constexpr float kDefaultKeepRight = 500.f;
-// The end bend DiffusionPlanner samples with (SamplerConfig::end_bend; the bare sampler's default
-// is 0): tuned on seeds 1000-1299 (docs/experiments.md, "Windows that arrive").
-constexpr float kDefaultEndBend = 1.f;
-// The DDIM steps DiffusionPlanner samples with (SamplerConfig::sample_steps; the bare sampler and
-// training use the model's own, ModelConfig::sample_steps, 10 for the shipped models), and the
-// warm start (SamplerConfig::warm_start, the last W of them run from each robot's last window; the
-// bare sampler's default is 0). Warm start 5 of 10 from stop 25 (seeds 1000-1299, docs/experiments.md,
-// "Warm-started windows"); 4 of 8 since stop 33: the same noise level, 4 network passes per plan
-// instead of 5, at the same success on the tuning suite (docs/experiments.md, "Four passes a plan").
-constexpr int kDefaultSampleSteps = 8;
-constexpr int kDefaultWarmStart = 4;
-// The planner's S for a model: kDefaultSampleSteps, or the model's own where that is fewer.
-inline int planner_sample_steps(const ModelConfig& c) { return std::min(kDefaultSampleSteps, c.sample_steps); }
-// Whether DiffusionPlanner starts a robot without a last window from a straight line
-// (DiffusionPlanner::line_start): tuned on seeds 1000-1299 (docs/experiments.md, "Line start").
-constexpr bool kDefaultLineStart = true;
-// How soon a plan asks to be replaced while robots may meet in a one-lane passage
-// (DiffusionPlanner::passage_replan): tuned on seeds 1000-1199 (docs/experiments.md, "Turns on time").
-constexpr int kDefaultPassageReplan = 4;
-// Best of 2 for small plans (DiffusionPlanner::small_plan_candidates): a plan of at most
-// kSmallPlanWindows robot windows draws 2 candidates per scene, a batch no larger than a team of 8
-// planned as one scene, whose plan time is the speed target. Tuned on seeds 1000-1299
-// (docs/experiments.md, "Best of two for small teams").
-constexpr int kSmallPlanWindows = 4;
-constexpr int kDefaultSmallPlanCandidates = 2;
 
 // A square grid of nodes over the world, (x, y) = (lo + col * cell, lo + row * cell), row-major
 // from the lowest y, and bilinear interpolation of values given at its nodes.
@@ -3103,7 +3081,8 @@ struct ConflictWorkspace {
     void set_map(const WorldMap& map) { fields.set_map(map); }
 };
 
-// Sampling options (SPEC 6, paper Alg. 2).
+// Sampling options (SPEC 6, paper Alg. 2) of sample_windows. Its defaults are plain DDIM, the
+// paper's sampler; the planner makes its own from PlannerConfig (PlannerConfig::sampler_config).
 struct SamplerConfig {
     int sample_steps = 10;       // S, DDIM steps (eta = 0), in [1, K]
     float x0_clip = 1.5f;        // x0_hat clipped to [-x0_clip, x0_clip] (normalised displacements; Diffuser's clip_denoised)
@@ -3124,7 +3103,7 @@ struct SamplerConfig {
     // waypoint H-2 is nearer that goal than the robot is has its free waypoints t = 1 .. H-2
     // moved by end_bend * t / (H-2) * (goal - waypoint H-2): it arrives instead of stopping short
     // and jumping to the goal at its last waypoint. A window that leaves its goal (a robot making
-    // way) is kept. 0 = off (DiffusionPlanner samples with kDefaultEndBend).
+    // way) is kept. 0 = off (the planner's: PlannerConfig::sampler.end_bend).
     float end_bend = 0;
     // W >= 0: given warm windows (sample_windows' `warm`: DiffusionPlanner passes each robot's
     // last window, shifted to now), DDIM runs only its last W steps, starting from the
@@ -3342,15 +3321,698 @@ void sample_windows(Denoiser& model, const NoiseSchedule& schedule, const SceneB
 }
 
 // =============================================================================================
-// Moving-window planner (SPEC 8)
+// Section 7. Planner settings: PlannerConfig, its presets and its table
+// =============================================================================================
+
+// One-lane passages (Section 8): whether robots take turns there, and how the passages are found
+// and queued. PassageControl reads the passage fields; the planner reads take_turns and
+// passage_replan.
+struct TrafficConfig {
+    bool take_turns = true;        // robots that would meet head-on in a one-lane passage take turns (false: each heads for its goal)
+    int passage_replan = 4;        // while robots may meet in a passage, a plan asks to be replaced after this many steps (0: never)
+    double one_lane_width = 0.47;  // passages narrower than this, wall to wall, are one-lane (on the grid: 0.45 always, 0.50 never)
+    double free_clear = 0.12;      // a robot's centre fits where the clearance is >= this (radius + 0.02)
+    double lookahead = 1.2;        // a robot claims the first passage within this distance along its route
+    double spare = 0;              // a claim from another mouth waits if it would enter before a holder is this far out
+    double wait_back = 0.45;       // the nearest waiting robot waits this far out from its mouth,
+    double queue_spacing = 0.3;    // each next one this much farther,
+    double wait_side = 0.25;       // and this far to the right of the way in
+    double min_length = 0.5;       // only passages whose mouths are this far apart (corridors, not doorways);
+    double bypass = 1.0;           // one with a way around at most this much longer is avoidable:
+    bool go_around = true;         // robots that would wait go around it (false: it is no passage)
+    double spread = 0.3;           // and take its two sides in turn: each the side whose way, plus this per
+                                   // robot already going that side, is shortest (0: all the shortest way)
+};
+
+// Everything a plan uses, each default written once, here: who plans with whom, the sampler, its
+// guidance, the traffic conventions and the follower that executes the plans. The defaults are
+// the tuned planner (PlannerConfig::tuned(), tuned on seeds 1000-1999; what each setting bought:
+// docs/experiments.md); PlannerConfig::paper() is the paper's planner. planner_settings() lists
+// every field with its range and meaning: validate(), set() and the tool's --set and
+// --list-settings all read that one table.
+struct PlannerConfig {
+    struct Neighbourhood {
+        // Robots per scene K: each robot's window comes from its own scene of itself and its K-1
+        // nearest within sensing_radius (n scenes sampled as one batch), so the model never attends
+        // over more robots than it saw in training; 0: the whole team in one scene (the paper's).
+        // -1 (automatic): K = ceil(1.5 n_train_max) (n_max when unknown; at most n_max) when the
+        // world is larger than the training world or the team larger than n_max, else one scene.
+        int neighbours = -1;
+        double sensing_radius = 0;  // world units; 0 (automatic): 2 position_scale, the training world's width
+    } neighbourhood;
+    struct Sampler {
+        int sample_steps = 8;            // DDIM steps S, at most the model's own; 0: the model's own
+        int warm_start = 4;              // run the last W of S steps from each robot's last window (0: off)
+        bool line_start = true;          // a robot without a last window warm-starts from a straight line
+        int candidates = 1;              // best of k windows per scene
+        int small_plan_candidates = 2;   // at least this many for a plan of <= kSmallPlanWindows robot windows
+        float end_bend = 1;              // bend a window that stops short of a goal within reach to arrive (0: off)
+        bool goal_inpaint = SamplerConfig{}.goal_inpaint;  // pin the last waypoint to a goal within reach
+        float goal_reach = -1;           // "within reach", world units; -1 (automatic): default_goal_reach
+        float x0_clip = SamplerConfig{}.x0_clip;
+    } sampler;
+    struct Guidance {
+        float weight = 0.004f;   // each DDIM step moves x0_hat's waypoints by -weight * d cost / d waypoint (0: plain DDIM)
+        float keep_right = 500;  // robots meeting in the guided windows are pushed to the right of their relative motion
+        WindowCost cost;         // the cost the guidance descends and best-of-k ranks
+    } guidance;
+    TrafficConfig traffic;
+    FollowerConfig follower;     // how PlanFollower executes the plans (make_follower)
+
+    // Today's planner, the default.
+    static PlannerConfig tuned() { return PlannerConfig{}; }
+    // The paper's planner: plain DDIM with goal inpainting in the model's own S steps from noise,
+    // one window per scene, no guidance, keep-right, end bend or traffic rules; the SPEC 8
+    // follower (no lookahead, no early replans, equal filter weights, SPEC 3.2's barrier rate).
+    static PlannerConfig paper() {
+        PlannerConfig p;
+        p.sampler.sample_steps = 0;
+        p.sampler.warm_start = 0;
+        p.sampler.line_start = false;
+        p.sampler.small_plan_candidates = 1;
+        p.sampler.end_bend = 0;
+        p.guidance.weight = 0;
+        p.guidance.keep_right = 0;
+        p.traffic.take_turns = false;
+        p.traffic.passage_replan = 0;
+        p.follower.priority_weight = 1;
+        p.follower.lookahead = 0;
+        p.follower.replan_error = 0;
+        p.follower.filter = SafetyFilterParams{};
+        return p;
+    }
+    // A preset by name: "tuned" or "paper".
+    static PlannerConfig preset(const std::string& name) {
+        if (name == "tuned") return tuned();
+        if (name == "paper") return paper();
+        throw std::invalid_argument("planner preset '" + printable(name) + "': expected tuned or paper");
+    }
+
+    // Throws std::invalid_argument naming the first setting out of its range.
+    inline void validate() const;
+    // Sets one setting by its table name ("guidance.weight") from text ("0.004", "auto", "true").
+    inline void set(const std::string& name, const std::string& value);
+    // The sampler's options for `model`: automatic values resolved.
+    SamplerConfig sampler_config(const ModelConfig& model) const {
+        SamplerConfig sc;
+        sc.sample_steps = sampler.sample_steps > 0 ? std::min(sampler.sample_steps, model.sample_steps) : model.sample_steps;
+        sc.x0_clip = sampler.x0_clip;
+        sc.goal_inpaint = sampler.goal_inpaint;
+        sc.goal_reach = sampler.goal_reach >= 0 ? sampler.goal_reach : default_goal_reach(model);
+        sc.guidance = guidance.weight;
+        sc.candidates = sampler.candidates;
+        sc.cost = guidance.cost;
+        sc.keep_right = guidance.keep_right;
+        sc.end_bend = sampler.end_bend;
+        sc.warm_start = sampler.warm_start;
+        return sc;
+    }
+};
+
+// A plan of at most this many robot windows draws PlannerConfig::sampler.small_plan_candidates
+// (2): a batch no larger than a team of 8 planned as one scene, whose plan time is the speed target.
+constexpr int kSmallPlanWindows = 4;
+
+// One row of the settings table: a PlannerConfig field, its name, range and meaning.
+struct PlannerSetting {
+    const char* name;          // group.field, as --set takes it
+    double lo, hi;             // the range of a value (a bool: 0 and 1)
+    const char* meaning;       // one line
+    const char* automatic;     // what `automatic_value` stands for ("auto" in text), or nullptr
+    double automatic_value;
+    std::variant<int& (*)(PlannerConfig&), float& (*)(PlannerConfig&), double& (*)(PlannerConfig&), bool& (*)(PlannerConfig&)> field;
+
+    double get(const PlannerConfig& c) const {
+        return std::visit([&](auto f) { return (double)f(const_cast<PlannerConfig&>(c)); }, field);
+    }
+    bool is_bool() const { return std::holds_alternative<bool& (*)(PlannerConfig&)>(field); }
+    bool is_integer() const { return std::holds_alternative<int& (*)(PlannerConfig&)>(field) || is_bool(); }
+    bool allows(double v) const { return (automatic && v == automatic_value) || (v >= lo && v <= hi); }
+    // "[lo, hi]", "0 or 1", plus "or auto".
+    std::string range_text() const {
+        std::string r = is_bool() ? "0 or 1" : "[" + number_text(lo) + ", " + number_text(hi) + "]";
+        return automatic ? r + " or auto" : r;
+    }
+    std::string value_text(const PlannerConfig& c) const {
+        const double v = get(c);
+        return automatic && v == automatic_value ? std::string("auto") : number_text(v);
+    }
+};
+
+// The table of every PlannerConfig setting (the order of the struct).
+inline const std::vector<PlannerSetting>& planner_settings() {
+    using C = PlannerConfig;
+    static const std::vector<PlannerSetting> table = {
+        {"neighbourhood.neighbours", 0, 1024, "robots per scene: each robot plans with its K-1 nearest; 0 = the whole team",
+         "ceil(1.5 n_train_max) when the team or world is larger than in training, else the whole team", -1,
+         +[](C& c) -> int& { return c.neighbourhood.neighbours; }},
+        {"neighbourhood.sensing_radius", 1e-3, 1000, "neighbours farther than this (world units) are left out",
+         "2 x the model's position_scale", 0, +[](C& c) -> double& { return c.neighbourhood.sensing_radius; }},
+        {"sampler.sample_steps", 1, 1000, "DDIM steps S, at most the model's own (a model that samples in fewer keeps its own)",
+         "the model's own S", 0, +[](C& c) -> int& { return c.sampler.sample_steps; }},
+        {"sampler.warm_start", 0, 1000, "a plan runs the last W of the S steps from each robot's last window (0 = off)", nullptr, 0,
+         +[](C& c) -> int& { return c.sampler.warm_start; }},
+        {"sampler.line_start", 0, 1, "a robot without a last window starts from a straight line toward its goal", nullptr, 0,
+         +[](C& c) -> bool& { return c.sampler.line_start; }},
+        {"sampler.candidates", 1, kMaxCandidates, "windows drawn per scene; the lowest-cost one is kept", nullptr, 0,
+         +[](C& c) -> int& { return c.sampler.candidates; }},
+        {"sampler.small_plan_candidates", 1, kMaxCandidates, "at least this many for a plan of at most 4 robot windows", nullptr, 0,
+         +[](C& c) -> int& { return c.sampler.small_plan_candidates; }},
+        {"sampler.end_bend", 0, 1, "a window that stops short of a goal within reach is bent to arrive (0 = off)", nullptr, 0,
+         +[](C& c) -> float& { return c.sampler.end_bend; }},
+        {"sampler.goal_inpaint", 0, 1, "pin a window's last waypoint to its goal when the goal is within reach", nullptr, 0,
+         +[](C& c) -> bool& { return c.sampler.goal_inpaint; }},
+        {"sampler.goal_reach", 0, 100, "\"within reach\" for goal inpainting, world units", "0.55 (H-1) stride / 15, the model's window reach scaled (0.55 for the shipped model)",
+         -1, +[](C& c) -> float& { return c.sampler.goal_reach; }},
+        {"sampler.x0_clip", 1e-3, 100, "x0_hat is clipped to [-x0_clip, x0_clip] (normalised displacements)", nullptr, 0,
+         +[](C& c) -> float& { return c.sampler.x0_clip; }},
+        {"guidance.weight", 0, 1e6, "each DDIM step moves x0_hat's waypoints by -weight * d cost / d waypoint (0 = plain DDIM)", nullptr, 0,
+         +[](C& c) -> float& { return c.guidance.weight; }},
+        {"guidance.keep_right", 0, 1e6, "robots meeting in the guided windows are pushed to the right of their relative motion", nullptr, 0,
+         +[](C& c) -> float& { return c.guidance.keep_right; }},
+        {"guidance.agent_weight", 0, 1e6, "cost weight of robots closer than 2 radius + agent_margin", nullptr, 0,
+         +[](C& c) -> float& { return c.guidance.cost.agent_weight; }},
+        {"guidance.map_weight", 0, 1e6, "cost weight of robots closer than radius + map_margin to the map", nullptr, 0,
+         +[](C& c) -> float& { return c.guidance.cost.map_weight; }},
+        {"guidance.goal_weight", 0, 1e6, "cost weight of a window's end distance to its goal or subgoal", nullptr, 0,
+         +[](C& c) -> float& { return c.guidance.cost.goal_weight; }},
+        {"guidance.agent_margin", 0, 10, "extra distance wanted between two robots' surfaces (world units)", nullptr, 0,
+         +[](C& c) -> float& { return c.guidance.cost.agent_margin; }},
+        {"guidance.map_margin", 0, 10, "extra distance wanted between a robot's surface and the map (world units)", nullptr, 0,
+         +[](C& c) -> float& { return c.guidance.cost.map_margin; }},
+        {"guidance.radius", 0, 10, "robot radius the cost assumes (world units)", nullptr, 0,
+         +[](C& c) -> float& { return c.guidance.cost.radius; }},
+        {"guidance.geodesic", 0, 1, "the goal term measures distance around obstacles", nullptr, 0,
+         +[](C& c) -> bool& { return c.guidance.cost.geodesic; }},
+        {"traffic.take_turns", 0, 1, "robots meeting head-on in a one-lane passage take turns", nullptr, 0,
+         +[](C& c) -> bool& { return c.traffic.take_turns; }},
+        {"traffic.passage_replan", 0, 1000, "while robots may meet in a passage, replan after this many steps (0 = off)", nullptr, 0,
+         +[](C& c) -> int& { return c.traffic.passage_replan; }},
+        {"traffic.one_lane_width", 0, 100, "passages narrower than this, wall to wall, are one-lane", nullptr, 0,
+         +[](C& c) -> double& { return c.traffic.one_lane_width; }},
+        {"traffic.free_clear", 0, 100, "a robot's centre fits where the clearance is at least this", nullptr, 0,
+         +[](C& c) -> double& { return c.traffic.free_clear; }},
+        {"traffic.lookahead", 0, 100, "a robot claims the first passage within this distance along its route", nullptr, 0,
+         +[](C& c) -> double& { return c.traffic.lookahead; }},
+        {"traffic.spare", 0, 100, "a claim from another mouth waits unless those inside are this far out", nullptr, 0,
+         +[](C& c) -> double& { return c.traffic.spare; }},
+        {"traffic.wait_back", 0, 100, "the first waiting robot waits this far out from the mouth", nullptr, 0,
+         +[](C& c) -> double& { return c.traffic.wait_back; }},
+        {"traffic.queue_spacing", 0, 100, "each next waiting robot this much farther", nullptr, 0,
+         +[](C& c) -> double& { return c.traffic.queue_spacing; }},
+        {"traffic.wait_side", 0, 100, "waiting robots stand this far to the right of the way in", nullptr, 0,
+         +[](C& c) -> double& { return c.traffic.wait_side; }},
+        {"traffic.min_length", 0, 100, "only passages whose mouths are this far apart count (corridors, not doorways)", nullptr, 0,
+         +[](C& c) -> double& { return c.traffic.min_length; }},
+        {"traffic.bypass", 0, 100, "a passage with a way around at most this much longer is avoidable", nullptr, 0,
+         +[](C& c) -> double& { return c.traffic.bypass; }},
+        {"traffic.go_around", 0, 1, "a robot that would wait at an avoidable passage goes around it", nullptr, 0,
+         +[](C& c) -> bool& { return c.traffic.go_around; }},
+        {"traffic.spread", 0, 100, "robots going around take its sides in turn: this much per robot already on a side", nullptr, 0,
+         +[](C& c) -> double& { return c.traffic.spread; }},
+        {"follower.replan_every", 1, 1000, "steps executed per plan (m)", nullptr, 0,
+         +[](C& c) -> int& { return c.follower.replan_every; }},
+        {"follower.safety_filter", 0, 1, "the SPEC 3.2 safety filter runs after the tracker", nullptr, 0,
+         +[](C& c) -> bool& { return c.follower.safety_filter; }},
+        {"follower.priority_weight", 1, 1000, "safety-filter weight of the robot that goes first (1 = all equal)", nullptr, 0,
+         +[](C& c) -> double& { return c.follower.priority_weight; }},
+        {"follower.lookahead", 0, kMaxLookahead, "the tracker aims this many steps ahead of the plan's waypoint for now", nullptr, 0,
+         +[](C& c) -> double& { return c.follower.lookahead; }},
+        {"follower.replan_error", 0, 100, "replan early (after m/2 steps) when a robot is this far off its plan (0 = off)", nullptr, 0,
+         +[](C& c) -> double& { return c.follower.replan_error; }},
+        {"follower.filter_rate", 0.01, 9.99, "the safety filter's barrier rate, 1/s (below 1/dt)", nullptr, 0,
+         +[](C& c) -> double& { return c.follower.filter.rate; }},
+    };
+    return table;
+}
+
+// The table's row named `name`, or nullptr.
+inline const PlannerSetting* find_planner_setting(const std::string& name) {
+    for (const PlannerSetting& s : planner_settings())
+        if (name == s.name) return &s;
+    return nullptr;
+}
+
+inline void PlannerConfig::validate() const {
+    for (const PlannerSetting& s : planner_settings()) {
+        const double v = s.get(*this);
+        if (!s.allows(v))  // the message only on failure: no allocation while planning
+            throw std::invalid_argument("planner setting " + std::string(s.name) + ": must be " + s.range_text() + " (got " + number_text(v) + ")");
+    }
+}
+
+inline void PlannerConfig::set(const std::string& name, const std::string& text) {
+    const PlannerSetting* s = find_planner_setting(name);
+    if (!s) throw std::invalid_argument("planner setting '" + printable(name) + "': no such setting (madbp eval --list-settings lists them)");
+    const std::string what = "planner setting " + name + ": ";
+    double v = 0;
+    if (s->automatic && text == "auto") {
+        v = s->automatic_value;
+    } else if (s->is_bool() && (text == "true" || text == "false")) {
+        v = text == "true";
+    } else {
+        char* end = nullptr;
+        errno = 0;
+        v = std::strtod(text.c_str(), &end);
+        if (text.empty() || end != text.c_str() + text.size() || !std::isfinite(v) || errno == ERANGE)
+            throw std::invalid_argument(what + "expected a number, got '" + printable(text) + "'");
+        if (s->is_integer() && v != std::floor(v)) throw std::invalid_argument(what + "expected a whole number, got '" + printable(text) + "'");
+        if (!s->allows(v)) throw std::invalid_argument(what + "must be " + s->range_text() + " (got " + printable(text) + ")");
+    }
+    std::visit([&](auto f) {
+        auto& field = f(*this);
+        field = (std::remove_reference_t<decltype(field)>)v;
+    }, s->field);
+}
+
+// =============================================================================================
+// Section 8. Traffic conventions: one-lane passages (PassageControl)
+// =============================================================================================
+
+// One-lane passages (issue 12): corridors too narrow for two robots to pass side by side. Two
+// robots that meet head-on in one cannot settle it within a planning window: the filter holds
+// them nose to nose, or the last one through waits in the way and runs out of time. Fleets
+// settle it as traffic control does, one direction at a time, and so does PassageControl: it
+// finds the passages on a RouteGuide's grid and tells each robot of a team whether to go on, to
+// wait beside the passage's mouth while a robot that entered from another mouth holds it, or
+// (where the corridor has a short way around) to go around it.
+//   - One-lane cell: a centre fits there (clearance >= free_clear) and some line through it, in
+//     one of 8 directions, crosses the free space in less than one_lane_width - 2 free_clear
+//     (no room for a second centre 2 radius + a margin away). Its key: the two obstacle groups
+//     (detail::surface_groups: obstacles with no room for a centre between them are one, the
+//     border one) at the ends of its shortest such line. A passage: an 8-connected set of cells
+//     of one key with two mouths (the connected sets of free cells beside it, pockets aside) at
+//     least min_length apart: a corridor, not a doorway, a corner, a dead end or a junction.
+//     Keys keep the narrow gaps around a corridor's ends (a wall's end and a disc, a disc and
+//     the border) from joining it into a junction. One with a way around
+//     at most `bypass` longer is avoidable.
+//   - A robot's claim: the first passage on its route (RouteGuide::route_cells) within
+//     `lookahead`, how far along the route it starts (0: the robot is in it) and the mouth it
+//     enters by (in it: the mouth nearest it other than the one its route leaves by).
+//   - Of the claims on a passage, the nearest (then the one with less of it ahead, then the
+//     lower id, then the lower index) holds it; the claims that enter by another mouth wait in
+//     a queue at theirs: places wait_back out from the mouth's centre, then every
+//     queue_spacing, each wait_side to the right of the way in (to the left, or on that line,
+//     where there is no room), each taken by the robot nearest it of those left.
+//     A robot in the passage that must wait backs out. At an avoidable passage a robot that
+//     would wait outside it goes around instead (go_around): its route keeps out of the passage
+//     (closed_to, ClosedCells) while the holders are in it, and robots going around the same
+//     passage take its two sides in turn (spread; closed_to then also closes the other side).
+// Memory: a few grids, plus two per avoidable passage (its sides).
+// Claims are made afresh at every call from positions, goals and ids alone, so robots that plan
+// for themselves with the same information reach the same decision.
+class PassageControl {
+public:
+    TrafficConfig params;  // the passage fields (take_turns and passage_replan are the planner's)
+    struct Mouth {
+        int passage = -1;
+        Vec2 at;    // the centre of the mouth's cells
+        Vec2 in;    // unit: from there into the passage
+    };
+
+    // For cell k of the guide's grid for `map`: passage(...)[k], the passage it belongs to, or -1;
+    // mouth_of_cell()[k], the mouth it belongs to, or -1; mouths() lists them.
+    const std::vector<int>& passage(RouteGuide& guide, const WorldMap& map) {
+        const ClearanceGrid& grid = guide.grid(map);
+        const double shape[] = {params.one_lane_width, params.free_clear, params.min_length, params.bypass, (double)params.go_around, grid.cell};
+        if (!(map_ == map) || (int)passage_.size() != grid.n * grid.n || !std::equal(shape, shape + 6, made_with_)) {
+            find_passages(grid, map);
+            std::copy(shape, shape + 6, made_with_);
+        }
+        return passage_;
+    }
+    const std::vector<int>& mouth_of_cell() const { return mouth_; }
+    const std::vector<char>& avoidable() const { return avoidable_; }  // per passage: has a way around within `bypass`
+    const std::vector<Mouth>& mouths() const { return mouths_; }
+
+    // For robots i < n at pos[i] heading for goal[i] (at_goal[i]: arrived, claims nothing; ids[i]:
+    // the robot's id, which breaks ties, or nullptr: the index does):
+    // wait[i] = kWait and point[i] = where to wait; kGoAround (keep out of the passage
+    // closed_to(i) on the way to goal[i]); or kGoOn (point[i] = goal[i]). Returns how many do not go on.
+    enum Turn : char { kGoOn = 0, kWait = 1, kGoAround = 2 };
+    int arbitrate(RouteGuide& guide, const WorldMap& map, int n, const Vec2* pos, const Vec2* goal, const char* at_goal,
+                  std::vector<char>& wait, std::vector<Vec2>& point, const int* ids = nullptr) {
+        const TrafficConfig& p = params;
+        const double lengths[] = {p.one_lane_width, p.free_clear, p.lookahead, p.wait_back, p.queue_spacing, p.wait_side, p.min_length, p.bypass, p.spread, p.spare};
+        for (double v : lengths)
+            if (!(v >= 0) || !std::isfinite(v)) throw std::invalid_argument("traffic: every length must be a finite number >= 0 (got " + number_text(v) + ")");
+        const std::vector<int>& cell_passage = passage(guide, map);
+        const ClearanceGrid& grid = guide.grid();
+        wait.assign(n, kGoOn);
+        point.assign(goal, goal + n);
+        around_.assign(n, -1);
+        around_side_.assign(n, -1);
+        claims_.clear();
+        if (mouths_.empty()) return 0;
+        const int max_cells = 2 + (int)std::ceil(p.lookahead / grid.cell);
+        for (int i = 0; i < n; ++i) {
+            if (at_goal[i]) continue;
+            guide.route_cells(map, pos[i], goal[i], max_cells, route_);
+            Claim c;
+            c.robot = i;
+            for (int j = 0; j < (int)route_.size() && c.passage < 0; ++j)
+                if (cell_passage[route_[j]] >= 0) c.passage = cell_passage[route_[j]], c.entry = j;
+            if (c.passage < 0) continue;
+            c.exit = c.entry;
+            while (c.exit + 1 < (int)route_.size() && cell_passage[route_[c.exit + 1]] == c.passage) ++c.exit;
+            c.mouth = c.entry > 0 ? mouth_[route_[c.entry - 1]] : -1;
+            if (c.mouth < 0 || mouths_[c.mouth].passage != c.passage) {
+                // In the passage (or entered beside a mouth): the nearest mouth but the one the route leaves by.
+                const int leaves = c.exit + 1 < (int)route_.size() ? mouth_[route_[c.exit + 1]] : -1;
+                c.mouth = -1;
+                for (int m = 0; m < (int)mouths_.size(); ++m)
+                    if (mouths_[m].passage == c.passage && m != leaves &&
+                        (c.mouth < 0 || norm(mouths_[m].at - pos[i]) < norm(mouths_[c.mouth].at - pos[i])))
+                        c.mouth = m;
+                if (c.mouth < 0) continue;
+            }
+            claims_.push_back(c);
+        }
+        // A claim from another mouth waits when it would enter before a claim from the holder's mouth
+        // is `spare` out (route cells, as if both moved alike; the safety filter keeps them apart).
+        const int clear_cells = (int)std::ceil(p.spare / grid.cell);
+        int waiting = 0;
+        for (size_t a = 0; a < claims_.size(); ++a) {
+            bool seen = false;  // the first claim on each passage decides for all of its claims
+            for (size_t b = 0; b < a; ++b) seen = seen || claims_[b].passage == claims_[a].passage;
+            if (seen) continue;
+            const Claim* lead = &claims_[a];
+            for (size_t b = a + 1; b < claims_.size(); ++b)
+                if (claims_[b].passage == lead->passage && before(ids, claims_[b], *lead)) lead = &claims_[b];
+            losers_.clear();
+            for (size_t b = a; b < claims_.size(); ++b) {
+                if (claims_[b].passage != lead->passage || claims_[b].mouth == lead->mouth) continue;
+                bool meets = false;
+                for (size_t h = a; h < claims_.size(); ++h)
+                    meets = meets || (claims_[h].passage == lead->passage && claims_[h].mouth == lead->mouth &&
+                                      claims_[b].entry <= claims_[h].exit + clear_cells);
+                if (!meets) continue;
+                if (avoidable_[lead->passage] && claims_[b].entry > 0) {
+                    wait[claims_[b].robot] = kGoAround;
+                    around_[claims_[b].robot] = lead->passage;
+                    ++waiting;
+                } else {
+                    losers_.push_back((int)b);
+                }
+            }
+            if (p.spread > 0 && avoidable_[lead->passage]) spread_around(guide, map, lead->passage, pos, goal, ids);
+            // The queue at each waiting mouth: its places from the mouth out, each to the robot
+            // nearest it of those left (robots keep their places as they walk to them).
+            for (int m = 0; m < (int)mouths_.size(); ++m) {
+                if (mouths_[m].passage != lead->passage) continue;
+                for (int place = 0;; ++place) {
+                    const Vec2 spot = waiting_point(grid, mouths_[m], p.wait_back + place * p.queue_spacing);
+                    int best = -1;
+                    for (int b : losers_) {
+                        const int r = claims_[b].robot;
+                        if (claims_[b].mouth == m && !wait[r] && (best < 0 || norm(pos[r] - spot) < norm(pos[claims_[best].robot] - spot))) best = b;
+                    }
+                    if (best < 0) break;
+                    wait[claims_[best].robot] = kWait;
+                    point[claims_[best].robot] = spot;
+                    ++waiting;
+                }
+            }
+        }
+        return waiting;
+    }
+    // Whether the last arbitrate() saw claims on one passage from two of its mouths (robots that may meet in it).
+    bool contested() const {
+        for (size_t a = 0; a < claims_.size(); ++a)
+            for (size_t b = 0; b < a; ++b)
+                if (claims_[a].passage == claims_[b].passage && claims_[a].mouth != claims_[b].mouth) return true;
+        return false;
+    }
+    // The cells robot i of the last arbitrate() keeps out of (its passage's; none unless it goes around).
+    ClosedCells closed_to(int i) const {
+        if (i < 0 || i >= (int)around_.size() || around_[i] < 0) return {};
+        if (around_side_[i] >= 0) return side_cells(around_[i], around_side_[i]);
+        return {&passage_, around_[i], closed_key_[around_[i]]};
+    }
+
+private:
+    struct Claim {
+        int robot = -1, passage = -1, mouth = -1;
+        int entry = 0, exit = 0;  // route cells before the passage (0: in it) and before its last cell there
+    };
+    WorldMap map_;
+    double made_with_[6] = {};  // the parameters and cell the passages were found with
+    std::vector<int> passage_, mouth_, route_, losers_, queue_, around_, around_side_, going_;
+    std::vector<Mouth> mouths_;
+    std::vector<char> avoidable_;    // per passage: it has a way around within `bypass`
+    std::vector<uint64_t> closed_key_;  // per passage: ClosedCells::key of its cells
+    std::vector<std::vector<int>> side_closed_;  // per avoidable passage p and side s, [2p + s]: 1 where a robot going around on s keeps out
+    std::vector<Claim> claims_;
+
+    // Where the robot waits that is `distance` out from mouth m: right of the way in, left, or on it,
+    // the first point that fits (clearance >= free_clear + 0.04) outside any passage.
+    Vec2 waiting_point(const ClearanceGrid& grid, const Mouth& m, double distance) const {
+        const double lim = grid.half - params.free_clear;
+        auto fits = [&](Vec2 q) {
+            return std::abs(q.x) <= lim && std::abs(q.y) <= lim && grid.clear[grid.index(q)] >= params.free_clear + 0.04 &&
+                   passage_[grid.index(q)] < 0;
+        };
+        const Vec2 base = m.at - m.in * distance, right{m.in.y, -m.in.x};
+        for (const Vec2 q : {base + right * params.wait_side, base - right * params.wait_side, base})
+            if (fits(q)) return q;
+        return clamp_box(base, lim);
+    }
+
+    // The cells a robot going around avoidable passage p on side s keeps out of (close_side).
+    ClosedCells side_cells(int p, int s) const {
+        return {&side_closed_[2 * p + s], 1, closed_key_[p] ^ (0x9E3779B97F4A7C15ull * (uint64_t)(s + 1))};
+    }
+    // Whether claim a comes before b on their passage: the nearer (fewer route cells before
+    // it), then the one with less of it ahead, then the lower id (robots without one, no ids or
+    // id < 0, after those with one), then the lower index. By id, not index, a robot planning for
+    // itself (the others listed in another order) decides as the team's plan does.
+    static bool before(const int* ids, const Claim& a, const Claim& b) {
+        if (a.entry != b.entry) return a.entry < b.entry;
+        if (a.exit != b.exit) return a.exit < b.exit;
+        auto rank = [&](const Claim& c) { return ids && ids[c.robot] >= 0 ? ids[c.robot] : std::numeric_limits<int>::max(); };
+        return rank(a) != rank(b) ? rank(a) < rank(b) : a.robot < b.robot;
+    }
+    // Robots going around passage `id` (around_) take its two sides in turn, in before() order
+    // (the nearest first): each the side whose way to its goal, plus `spread` per robot already
+    // going that side, is shortest (ties: the shorter way, then side 0). Two robots queueing
+    // through the same gap beside a corridor lose more than one going a little farther round.
+    void spread_around(RouteGuide& guide, const WorldMap& map, int id, const Vec2* pos, const Vec2* goal, const int* ids) {
+        going_.clear();
+        for (int c = 0; c < (int)claims_.size(); ++c)
+            if (around_[claims_[c].robot] == id) going_.push_back(c);
+        std::sort(going_.begin(), going_.end(), [&](int a, int b) { return before(ids, claims_[a], claims_[b]); });
+        int taking[2] = {0, 0};
+        for (int c : going_) {
+            const int r = claims_[c].robot;
+            double cost[2];
+            int steps[2];
+            for (int s = 0; s < 2; ++s) {
+                steps[s] = guide.walk_steps(map, pos[r], goal[r], side_cells(id, s));
+                cost[s] = steps[s] * guide.cell + params.spread * taking[s];
+            }
+            int side = cost[1] < cost[0] || (cost[1] == cost[0] && steps[1] < steps[0]) ? 1 : 0;
+            if (steps[side] >= RouteGuide::kRouteUnreachable) side = -1;  // neither side has a way: keep out of the passage only
+            around_side_[r] = side;
+            if (side >= 0) ++taking[side];
+        }
+    }
+    // The cells a robot going around the passage of `cells` (mouths a, b) on side `side` keeps
+    // out of (closed[k] = 1): the passage, and a band 3 cells wide from its middle across the
+    // other side, through the wall there and the free space beyond, to the next obstacle or the
+    // border. That side's way around crosses the band, so the robot's way takes side `side`.
+    void close_side(const ClearanceGrid& grid, const std::vector<int>& cells, const Mouth& a, const Mouth& b, int side, std::vector<int>& closed) const {
+        const int n = grid.n;
+        closed.assign((size_t)n * n, 0);
+        for (int c : cells) closed[c] = 1;
+        const Vec2 middle = (a.at + b.at) * 0.5, u = normalized(b.at - a.at);
+        const Vec2 across = side == 0 ? Vec2{u.y, -u.x} : Vec2{-u.y, u.x};  // side 0 passes left of a -> b: close the right
+        int start = cells[0];
+        for (int c : cells)
+            if (norm(grid.centre(c) - middle) < norm(grid.centre(start) - middle)) start = c;
+        int phase = 0;  // 0: in the passage, 1: in the wall beside it, 2: in the free space beyond
+        for (double t = 0;; t += 0.5 * grid.cell) {
+            const Vec2 q = grid.centre(start) + across * t;
+            if (std::abs(q.x) >= grid.half || std::abs(q.y) >= grid.half) break;
+            const int k = grid.index(q);
+            const bool blocked = grid.clear[k] < params.free_clear;
+            if (phase == 0 && blocked) phase = 1;
+            if (phase == 1 && !blocked) phase = 2;
+            if (phase == 2 && blocked) break;
+            closed[k] = 1;
+            detail::for_each_neighbour(n, k, [&](int k2) { closed[k2] = 1; });
+        }
+    }
+    // 8-connected flood from `seed` over the cells k with open(k) (not yet labelled): labels them
+    // `id` and appends them to out.
+    template <class Open>
+    void flood(int n, int seed, Open open, std::vector<int>& label, int id, std::vector<int>& out) {
+        queue_.assign(1, seed);
+        label[seed] = id;
+        for (size_t head = 0; head < queue_.size(); ++head) {
+            out.push_back(queue_[head]);
+            detail::for_each_neighbour(n, queue_[head], [&](int k2) {
+                if (open(k2)) label[k2] = id, queue_.push_back(k2);
+            });
+        }
+    }
+    // Whether the free cells outside component `id` reached from `group` are all one-lane.
+    bool pocket(const ClearanceGrid& grid, const std::vector<int>& one_lane, const std::vector<int>& component, int id,
+                const std::vector<int>& group) {
+        if (std::any_of(group.begin(), group.end(), [&](int g) { return one_lane[g] < 0; })) return false;  // the usual mouth
+        const int n = grid.n;
+        std::vector<char> seen((size_t)n * n, 0);
+        queue_ = group;
+        for (int g : group) seen[g] = 1;
+        for (size_t head = 0; head < queue_.size(); ++head) {
+            if (one_lane[queue_[head]] < 0) return false;
+            detail::for_each_neighbour(n, queue_[head], [&](int k2) {
+                if (seen[k2] || component[k2] == id || grid.clear[k2] < params.free_clear) return;
+                seen[k2] = 1;
+                queue_.push_back(k2);
+            });
+        }
+        return true;
+    }
+    // Whether a walk of at most `steps` cells through free cells outside component `id` leads from
+    // mouth `from` to another mouth of the same passage (mouths from `from` on are that passage's).
+    bool way_around(const ClearanceGrid& grid, const std::vector<int>& component, int id, int from, int steps) {
+        const int n = grid.n;
+        std::vector<int> depth((size_t)n * n, -1);
+        queue_.clear();
+        for (int k = 0; k < n * n; ++k)
+            if (mouth_[k] == from) depth[k] = 0, queue_.push_back(k);
+        for (size_t head = 0; head < queue_.size(); ++head) {
+            const int k = queue_[head];
+            if (mouth_[k] > from) return true;
+            if (depth[k] >= steps) continue;
+            detail::for_each_neighbour(n, k, [&](int k2) {
+                if (depth[k2] >= 0 || component[k2] == id || grid.clear[k2] < params.free_clear) return;
+                depth[k2] = depth[k] + 1;
+                queue_.push_back(k2);
+            });
+        }
+        return false;
+    }
+    void find_passages(const ClearanceGrid& grid, const WorldMap& map) {
+        const int n = grid.n;
+        const double chord_max = params.one_lane_width - 2 * params.free_clear, step = 0.5 * grid.cell;
+        auto fits = [&](Vec2 q) {
+            if (std::abs(q.x) >= grid.half || std::abs(q.y) >= grid.half) return false;
+            return grid.clear[grid.index(q)] >= params.free_clear;
+        };
+        // One-lane cells, keyed by the two obstacle groups their shortest chord ends at: a
+        // corridor's cells all end at its two walls, so a narrow gap between a wall's end and a
+        // disc nearby, or a disc and the border, does not join it into a junction.
+        const std::vector<int> surface_group = detail::surface_groups(map, 2 * params.free_clear);
+        const int groups = 1 + *std::max_element(surface_group.begin(), surface_group.end());
+        std::vector<int> one_lane((size_t)n * n, -1);  // the key of a one-lane cell (< (kMaxObstacles + 1)^2), else -1
+        for (int k = 0; k < n * n; ++k) {
+            if (grid.clear[k] < params.free_clear) continue;
+            const Vec2 c = grid.centre(k);
+            double shortest = chord_max;
+            Vec2 ends[2];
+            for (int d = 0; d < 8; ++d) {
+                const double angle = d * 0.39269908169872414;  // pi / 8
+                const Vec2 u{std::cos(angle), std::sin(angle)};
+                double chord = 0;
+                Vec2 end[2];
+                for (int side = 0; side < 2 && chord < shortest; ++side) {
+                    const Vec2 way = side ? u : u * -1.0;
+                    double s = step;
+                    for (; chord < shortest && fits(c + way * s); s += step) chord += step;
+                    end[side] = c + way * s;
+                }
+                if (chord < shortest) shortest = chord, ends[0] = end[0], ends[1] = end[1];
+            }
+            if (shortest >= chord_max) continue;
+            const int a = surface_group[detail::nearest_surface(map, ends[0])], b = surface_group[detail::nearest_surface(map, ends[1])];
+            one_lane[k] = std::min(a, b) * groups + std::max(a, b);
+        }
+        passage_.assign((size_t)n * n, -1);
+        mouth_.assign((size_t)n * n, -1);
+        mouths_.clear();
+        avoidable_.clear();
+        closed_key_.clear();
+        side_closed_.clear();
+        std::vector<int> component((size_t)n * n, -1), cells, group;
+        int passages = 0, components = 0;
+        for (int k = 0; k < n * n; ++k) {
+            if (one_lane[k] < 0 || component[k] != -1) continue;
+            cells.clear();
+            const int id = components++;
+            flood(n, k, [&](int k2) { return one_lane[k2] == one_lane[k] && component[k2] == -1; }, component, id, cells);
+            // Its mouths: free cells beside it (other one-lane cells too), not yet another
+            // passage's, grouped by connection; a pocket (a sliver beside a wall's end, from which
+            // no free cell outside a one-lane region is reached without crossing the passage) is
+            // no mouth.
+            std::vector<int> beside;
+            for (int c : cells)
+                detail::for_each_neighbour(n, c, [&](int k2) {
+                    if (grid.clear[k2] >= params.free_clear && component[k2] != id && mouth_[k2] == -1)
+                        mouth_[k2] = -3, beside.push_back(k2);  // -3: beside, ungrouped
+                });
+            const size_t first_mouth = mouths_.size();
+            for (int b : beside) {
+                if (mouth_[b] != -3) continue;
+                group.clear();
+                flood(n, b, [&](int k2) { return mouth_[k2] == -3; }, mouth_, (int)mouths_.size(), group);
+                if (pocket(grid, one_lane, component, id, group)) {
+                    for (int g : group) mouth_[g] = -1;
+                    continue;
+                }
+                Mouth m;
+                m.passage = passages;
+                Vec2 inner;
+                int inner_count = 0;
+                for (int g : group) {
+                    m.at += grid.centre(g);
+                    for (int c : cells)
+                        if (std::abs(c / n - g / n) <= 1 && std::abs(c % n - g % n) <= 1) inner += grid.centre(c), ++inner_count;
+                }
+                m.at = m.at / (double)group.size();
+                m.in = normalized(inner / (double)std::max(1, inner_count) - m.at);
+                mouths_.push_back(m);
+            }
+            // A corner or a dead end (one mouth) is no passage; nor is a junction (three or more),
+            // a doorway (mouths less than min_length apart), or without go_around one with a way
+            // around at most `bypass` longer.
+            double length = 0;
+            for (size_t m = first_mouth + 1; m < mouths_.size(); ++m) length = std::max(length, norm(mouths_[m].at - mouths_[first_mouth].at));
+            const bool corridor = mouths_.size() - first_mouth == 2 && length >= params.min_length;
+            const bool avoidable = corridor && way_around(grid, component, id, (int)first_mouth, (int)std::ceil((length + params.bypass) / grid.cell));
+            if (!corridor || (avoidable && !params.go_around)) {
+                for (int b : beside) mouth_[b] = -1;
+                mouths_.resize(first_mouth);
+                continue;
+            }
+            avoidable_.push_back(avoidable);
+            uint64_t key = 1469598103934665603ull;  // FNV-1a of the cells: the same key means the same cells
+            for (int c : cells) {
+                passage_[c] = passages;
+                key = (key ^ (uint64_t)c) * 1099511628211ull;
+            }
+            closed_key_.push_back(key | 1);  // never 0 (no cells)
+            side_closed_.resize(2 * (passages + 1));
+            if (avoidable)
+                for (int side = 0; side < 2; ++side)
+                    close_side(grid, cells, mouths_[first_mouth], mouths_[first_mouth + 1], side, side_closed_[2 * passages + side]);
+            ++passages;
+        }
+        map_ = map;
+    }
+};
+
+// =============================================================================================
+// Section 9. Moving-window planner (SPEC 8): DiffusionPlanner, make_follower, DecentralisedTeam
 // =============================================================================================
 
 // Plans a window for every present agent of a World with one shared model. Plug it into a
 // PlanFollower (madbp_sim.hpp) to execute the first m waypoints and replan:
 //   madbp::DiffusionPlanner planner(madbp::load_model("models/madbp-default.safetensors"));
-//   madbp::PlanFollower follower([&](const madbp::World& w) { return planner.plan(w); });
+//   madbp::PlanFollower follower = madbp::make_follower(planner);
 // A robot that plans for itself (decentralised) calls plan_robot with what it knows instead.
-// A planner remembers its last plan (SamplerConfig::warm_start): use one per world.
+// A planner remembers its last plan (PlannerConfig::sampler.warm_start): use one per world.
+// Every setting is in `settings` (PlannerConfig, Section 7); change them between plans freely.
 class DiffusionPlanner {
 public:
     // Another robot as one robot knows it: position and goal as received from it.
@@ -3361,60 +4023,28 @@ public:
                             // with ModelConfig::priority_context its priority key is its route when this planner
                             // first saw that id (-1: unknown, its route now)
     };
-    SamplerConfig sampler;
-    // Who plans with whom. 0: the whole team in one scene (the paper's). K > 0: neighbourhood
-    // planning: each robot's window comes from its own scene of itself and its K-1 nearest
-    // robots within sensing_radius (n scenes of <= K robots, sampled as one batch), so the model
-    // never attends over more robots than it saw in training. -1 (default): automatic, K =
-    // ceil(1.5 n_train_max) (n_max when n_train_max is unknown; at most n_max), neighbourhoods
-    // when the world is larger than the training world (half-size > position_scale) or the team
-    // larger than n_max. A larger team in the training world plans as one scene, and K = 6 for a
-    // model trained on 4: both measured better (docs/experiments.md, "Deploy large").
-    int neighbours = -1;
-    double sensing_radius = 0;  // world units; 0 = 2 position_scale (the training world's width; measured
-                                // far better than 1.2 in crowds, docs/experiments.md)
-    // One-lane passages (PassageControl, madbp_sim.hpp): robots that would meet head-on in a
-    // corridor too narrow to pass side by side take turns. A robot that waits is given its
-    // waiting point as its goal; one that goes around (a corridor with a short way around) its
-    // route's subgoal with the corridor closed. false: every robot heads for its goal or route subgoal.
-    bool take_turns = true;
-    PassageControl passages;
-    // Turns are decided when a plan is made. While robots may meet in a passage (claims on it from
-    // two mouths, or a robot waits), the plan asks to be replaced after this many steps
-    // (Plan::replan_after), so that the waiting go as soon as the way is clear (0: never asks).
-    int passage_replan = kDefaultPassageReplan;
-    // A robot with no last window to start from (a first plan, a robot that joined) starts from a
-    // straight line toward what it heads for (route_goal) instead of pure noise, so that with
-    // SamplerConfig::warm_start W a first plan too runs only the last W DDIM steps: half the time
-    // of a cold plan, at the same success on the tuning suite (docs/experiments.md, "Line start").
-    bool line_start = kDefaultLineStart;
-    // Candidates (SamplerConfig::candidates, best of k) for small plans: a plan of at most
-    // kSmallPlanWindows robot windows (one scene of up to 4 robots; a scene per robot for up to 2)
-    // draws at least this many per scene. A robot's plan_robot counts as its team's plan would.
-    // 1 = sampler.candidates for every plan.
-    int small_plan_candidates = kDefaultSmallPlanCandidates;
+    PlannerConfig settings;
     int last_plan_candidates() const { return last_k_; }  // candidates per scene the last plan drew
-    // What the last plan (or plan_robot) asks: passage_replan while robots may meet in a passage, else 0.
+    // What the last plan (or plan_robot) asks: traffic.passage_replan while robots may meet in a
+    // passage, else 0 (Plan::replan_after).
     int replan_after() const {
-        if (passage_replan <= 0 || !take_turns) return 0;
+        const TrafficConfig& t = settings.traffic;
+        if (t.passage_replan <= 0 || !t.take_turns) return 0;
         const bool waits = std::find(waiting_.begin(), waiting_.end(), (char)PassageControl::kWait) != waiting_.end();
-        return waits || passages.contested() ? passage_replan : 0;
+        return waits || passages_.contested() ? t.passage_replan : 0;
     }
 
-    explicit DiffusionPlanner(MadbpModel model, uint64_t seed = 0)
-        : model_(std::move(model)), schedule_(model_.config.diffusion_steps), rng_(seed) {
+    explicit DiffusionPlanner(MadbpModel model, uint64_t seed = 0, PlannerConfig planner_settings = PlannerConfig::tuned())
+        : settings(std::move(planner_settings)), model_(std::move(model)), schedule_(model_.config.diffusion_steps), rng_(seed) {
         model_.set_training(false);
-        sampler.sample_steps = planner_sample_steps(model_.config);
-        sampler.goal_reach = default_goal_reach(model_.config);
-        sampler.guidance = kDefaultGuidance;
-        sampler.keep_right = kDefaultKeepRight;
-        sampler.end_bend = kDefaultEndBend;
-        sampler.warm_start = kDefaultWarmStart;
     }
     const ModelConfig& config() const { return model_.config; }
     MadbpModel& model() { return model_; }
+    // The sampler options a plan uses now (settings resolved for this model).
+    SamplerConfig sampler() const { return settings.sampler_config(model_.config); }
     const SceneBatch& last_scene_batch() const { return batch_; }  // what the model saw in the last plan
     const ConflictWorkspace& last_candidates() const { return conflict_; }  // costs and choices of the last conflict-aware plan
+    const PassageControl& passages() const { return passages_; }            // the one-lane passages of the last plan's map
     // Per robot of the last plan (take_turns): PassageControl::kWait, waits to take its turn
     // through a one-lane passage, at last_wait_points()[i]; kGoAround, goes around one; kGoOn.
     const std::vector<char>& last_waiting() const { return waiting_; }
@@ -3428,6 +4058,7 @@ public:
     int neighbourhood(int n, double half_size) const {
         const ModelConfig& c = model_.config;
         const int K = neighbourhood_size();
+        const int neighbours = settings.neighbourhood.neighbours;
         if (neighbours == 0) return n;
         if (neighbours < 0 && half_size <= c.position_scale * (1 + 1e-9) && n <= c.n_max) return n;  // the training world: one scene
         return std::min(K, n);
@@ -3436,7 +4067,9 @@ public:
     // (n_max when n_train_max is unknown), at most n_max.
     int neighbourhood_size() const {
         const ModelConfig& c = model_.config;
-        if (neighbours < -1) throw std::invalid_argument("planner: neighbours must be -1 (automatic) or >= 0 (got " + std::to_string(neighbours) + ")");
+        const int neighbours = settings.neighbourhood.neighbours;
+        if (neighbours < -1)
+            throw std::invalid_argument("planner setting neighbourhood.neighbours: must be [0, 1024] or auto (got " + std::to_string(neighbours) + ")");
         if (neighbours >= 0) return neighbours;  // 0: the whole team
         return std::min(c.n_train_max > 0 ? (3 * c.n_train_max + 1) / 2 : c.n_max, c.n_max);
     }
@@ -3460,7 +4093,7 @@ public:
                 throw std::invalid_argument("planner: agent " + std::to_string(a.id) + " has a non-finite position or goal");
         const int K = neighbourhood(n, world.map().half_size);
         // A scene per robot unless one scene of the whole team was asked for or chosen.
-        const bool local = neighbours != 0 && (K < n || world.map().half_size > model_.config.position_scale * (1 + 1e-9));
+        const bool local = settings.neighbourhood.neighbours != 0 && (K < n || world.map().half_size > model_.config.position_scale * (1 + 1e-9));
         pos_.resize(n);
         goal_.resize(n);
         vel_.resize(n);
@@ -3510,7 +4143,7 @@ public:
                 throw std::invalid_argument(i ? "planner: neighbour " + std::to_string(i - 1) + " has a non-finite position or goal"
                                               : std::string("planner: the robot's position or goal is not finite"));
         }
-        const int K = neighbours == 0 ? n : std::min(neighbourhood_size(), n);
+        const int K = settings.neighbourhood.neighbours == 0 ? n : std::min(neighbourhood_size(), n);
         pos_.resize(n);
         goal_.resize(n);
         vel_.resize(n);
@@ -3551,7 +4184,8 @@ private:
     std::vector<int> order_;
     std::vector<float> priority_;
     std::vector<RouteGoal> route_;   // what each is told to head for (route_goal)
-    std::vector<char> waiting_;      // take_turns: robots told to wait, and where
+    PassageControl passages_;        // traffic.take_turns: the one-lane passages
+    std::vector<char> waiting_;      // robots told to wait, and where
     std::vector<Vec2> wait_point_;
     RouteGuide guide_;               // route subgoals (ModelConfig::subgoal_distance)
     ConflictWorkspace conflict_;     // guidance and best-of-k (SamplerConfig::guidance, candidates)
@@ -3589,9 +4223,8 @@ private:
         if (K > c.n_max)
             throw std::invalid_argument("planner: " + std::to_string(K) + " agents per scene exceed the model's n_max = " + std::to_string(c.n_max) +
                                         (local ? "" : "; larger teams need neighbourhood planning (neighbours = K <= n_max, --neighbours K)"));
-        if (small_plan_candidates < 1 || small_plan_candidates > kMaxCandidates)
-            throw std::invalid_argument("planner: small_plan_candidates must be in [1, kMaxCandidates = " + std::to_string(kMaxCandidates) +
-                                        "] (got " + std::to_string(small_plan_candidates) + ")");
+        settings.validate();
+        SamplerConfig sc = settings.sampler_config(c);
         const bool shared = c.frame == SceneFrame::World;  // one grid for every scene
         if (batch_.B != scenes || batch_.n != K || batch_.shared_grid != shared) {  // new buffers, grid redrawn
             batch_.resize(scenes, K, c, shared);
@@ -3599,19 +4232,23 @@ private:
         }
         if (shared) update_grid(map);
         waiting_.assign(n, PassageControl::kGoOn);
-        if (take_turns) passages.arbitrate(guide_, map, n, pos_.data(), goal_.data(), at_goal_.data(), waiting_, wait_point_, ids_.data());
+        if (settings.traffic.take_turns) {
+            passages_.params = settings.traffic;
+            passages_.arbitrate(guide_, map, n, pos_.data(), goal_.data(), at_goal_.data(), waiting_, wait_point_, ids_.data());
+        }
         route_.resize(n);
         for (int i = 0; i < n; ++i)
             route_[i] = waiting_[i] == PassageControl::kWait ? RouteGoal{wait_point_[i], true}
                         : route_goal(guide_, c, map, pos_[i], goal_[i],
-                                     waiting_[i] == PassageControl::kGoAround ? passages.closed_to(i) : ClosedCells{});
-        const double radius = sensing_radius > 0 ? sensing_radius : 2.0 * c.position_scale;
+                                     waiting_[i] == PassageControl::kGoAround ? passages_.closed_to(i) : ClosedCells{});
+        const double radius = settings.neighbourhood.sensing_radius > 0 ? settings.neighbourhood.sensing_radius : 2.0 * c.position_scale;
         // Each neighbourhood scene draws its own noise, seeded by the plan and its robot's id.
         const uint64_t plan_seed = local ? rng_.next_u64() : 0;
         if (local) batch_.noise_seed.resize(scenes);
         else batch_.noise_seed.clear();
         // Warm when every robot of every scene has a last window to start from, or a line (line_start).
-        bool warm = sampler.warm_starts() && ((last_t_ >= 0 && now_ > last_t_) || line_start);
+        const bool line_start = settings.sampler.line_start;
+        bool warm = sc.warm_starts() && ((last_t_ >= 0 && now_ > last_t_) || line_start);
         if (warm) warm_.setZero(2, (long)c.horizon * scenes * K);
         for (int b = 0; b < scenes; ++b) {
             int m = n;
@@ -3652,8 +4289,7 @@ private:
         }
         // Small plans draw small_plan_candidates. The team's robot windows: a scene per robot
         // (local; plan_robot's one scene stands for its team's n), or one scene of them all.
-        SamplerConfig sc = sampler;
-        if ((local ? n : 1) * std::min(K, n) <= kSmallPlanWindows) sc.candidates = std::max(sc.candidates, small_plan_candidates);
+        if ((local ? n : 1) * std::min(K, n) <= kSmallPlanWindows) sc.candidates = std::max(sc.candidates, settings.sampler.small_plan_candidates);
         last_k_ = sc.candidates;
         if (sc.conflict_aware()) conflict_.set_map(map);  // the distance field, once per map
         sample_windows(model_, schedule_, batch_, sc, rng_, x_, eps_, steps_, &conflict_, warm ? &warm_ : nullptr);
@@ -3704,6 +4340,52 @@ private:
         grid_map_ = map;
         grid_valid_ = true;
     }
+};
+
+// A PlanFollower (madbp_sim.hpp) that executes `planner`'s plans with its settings.follower.
+// The follower keeps a reference: the planner must outlive it.
+inline PlanFollower make_follower(DiffusionPlanner& planner) {
+    return PlanFollower([&planner](const World& w) { return planner.plan(w); }, planner.settings.follower);
+}
+
+// A team whose robots plan for themselves: each has its own planner (the same seed and settings)
+// and calls plan_robot with every other robot's position, goal, velocity and id, as if received
+// from it, and its clock (the world's step). Robots may join and leave. Plan::plan_ms is per
+// robot: the team's plans run one after another here, each robot's on its own computer there.
+class DecentralisedTeam {
+public:
+    DecentralisedTeam(std::shared_ptr<const MadbpModel> model, PlannerConfig settings, uint64_t seed)
+        : model_(std::move(model)), settings_(std::move(settings)), seed_(seed) {}
+    Plan plan(const World& world) {
+        const auto t0 = std::chrono::steady_clock::now();
+        const auto& agents = world.agents();
+        const int n = (int)agents.size();
+        Plan out;
+        out.ids.resize(n);
+        out.waypoints.resize(n);
+        for (int i = 0; i < n; ++i) {
+            const Agent& me = agents[i];
+            others_.clear();
+            for (int j = 0; j < n; ++j)
+                if (j != i) others_.push_back({agents[j].pos, agents[j].goal, agents[j].vel, agents[j].id});
+            auto& planner = robots_[me.id];
+            if (!planner) planner = std::make_unique<DiffusionPlanner>(model_->clone(), seed_, settings_);
+            planner->plan_robot(world.map(), me.id, me.pos, me.goal, others_, out.waypoints[i], me.vel, world.t());
+            out.ids[i] = me.id;
+            // The team replans when the first robot asks to (one waits at a passage in its scene).
+            const int after = planner->replan_after();
+            if (after > 0 && (out.replan_after == 0 || after < out.replan_after)) out.replan_after = after;
+        }
+        out.plan_ms = std::chrono::duration<double, std::milli>(std::chrono::steady_clock::now() - t0).count() / std::max(n, 1);
+        return out;
+    }
+
+private:
+    std::shared_ptr<const MadbpModel> model_;
+    PlannerConfig settings_;
+    uint64_t seed_;
+    std::map<int, std::unique_ptr<DiffusionPlanner>> robots_;  // by id
+    std::vector<DiffusionPlanner::Neighbour> others_;
 };
 
 }  // namespace madbp

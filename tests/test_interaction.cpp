@@ -520,19 +520,19 @@ TEST_CASE("sampler: with guidance off and k = 1 it is today's sampler, bit for b
             CHECK(cw.fields.clearance.nodes == 0);  // the workspace is untouched
         }
     }
-    // The planner with guidance off (its default is kDefaultGuidance): a plan is the reference sampler's windows.
+    // The planner with guidance off (its default is PlannerConfig{}.guidance.weight): a plan is the reference sampler's windows.
     ModelConfig c = tiny_config();
     DiffusionPlanner planner(MadbpModel(c, 4), 21);
-    CHECK(planner.sampler.guidance == kDefaultGuidance);
-    CHECK(planner.sampler.end_bend == kDefaultEndBend);
-    planner.sampler.guidance = 0;
-    planner.sampler.end_bend = 0;
+    CHECK(planner.settings.guidance.weight == PlannerConfig{}.guidance.weight);
+    CHECK(planner.settings.sampler.end_bend == PlannerConfig{}.sampler.end_bend);
+    planner.settings.guidance.weight = 0;
+    planner.settings.sampler.end_bend = 0;
     World world = make_random_world("barrier", 3, 6);
     const Plan p = planner.plan(world);
     MadbpModel copy(c, 4);
     copy.set_training(false);
     NoiseSchedule sched(c.diffusion_steps);
-    SamplerConfig sc = planner.sampler;
+    SamplerConfig sc = planner.sampler();
     Rng rng(21);
     Mat x, o;
     std::vector<int> b;
@@ -731,8 +731,8 @@ TEST_CASE("planner: conflict-aware and warm-started plans allocate nothing in th
     set_num_threads(1);
     ModelConfig c;  // the default configuration
     DiffusionPlanner planner(MadbpModel(c, 1), 3);
-    planner.sampler.guidance = 0.01f;
-    planner.sampler.candidates = 3;
+    planner.settings.guidance.weight = 0.01f;
+    planner.settings.sampler.candidates = 3;
     World w = make_random_world("barrier", 4, 4), later = w;
     for (int k = 0; k < 8; ++k) later.step(std::vector<Vec2>(4, Vec2{0.1, 0}));
     Plan plan;
@@ -751,11 +751,11 @@ TEST_CASE("planner: conflict-aware and warm-started plans allocate nothing in th
 
 TEST_CASE("planner: a plan of at most 4 robot windows draws small_plan_candidates; a larger one sampler.candidates") {
     const ModelConfig c = tiny_config();  // n_max 6
-    CHECK(kDefaultSmallPlanCandidates == 2);
+    CHECK(PlannerConfig{}.sampler.small_plan_candidates == 2);
     auto drawn = [&](int n, int small, int candidates, Plan* out = nullptr) {
         DiffusionPlanner planner(MadbpModel(c, 1), 3);
-        planner.small_plan_candidates = small;
-        planner.sampler.candidates = candidates;
+        planner.settings.sampler.small_plan_candidates = small;
+        planner.settings.sampler.candidates = candidates;
         const Plan p = planner.plan(make_random_world("obstacles", n, 5));
         if (out) *out = p;
         CHECK(planner.last_candidates().cost.size() == (size_t)planner.last_plan_candidates());  // one scene: k costs
@@ -790,9 +790,9 @@ TEST_CASE("planner: a plan of at most 4 robot windows draws small_plan_candidate
         CHECK(robot.last_plan_candidates() == team.last_plan_candidates());
     }
     DiffusionPlanner bad(MadbpModel(c, 1), 3);
-    bad.small_plan_candidates = 0;
+    bad.settings.sampler.small_plan_candidates = 0;
     CHECK_THROWS_WITH_AS(bad.plan(make_random_world("obstacles", 2, 5)), doctest::Contains("small_plan_candidates"), std::invalid_argument);
-    bad.small_plan_candidates = kMaxCandidates + 1;  // refused for a large team too, where the rule does not apply
+    bad.settings.sampler.small_plan_candidates = kMaxCandidates + 1;  // refused for a large team too, where the rule does not apply
     CHECK_THROWS_WITH_AS(bad.plan(make_random_world("obstacles", 6, 5)), doctest::Contains("small_plan_candidates"), std::invalid_argument);
 }
 
@@ -1121,20 +1121,20 @@ TEST_CASE("planner: a warm start draws each robot's window from its last one shi
     const ModelConfig c = tiny_config();
     const int H = c.horizon, n = 3;
     DiffusionPlanner warm(MadbpModel(c, 2), 11), cold(MadbpModel(c, 2), 11);
-    CHECK(warm.sampler.warm_start == kDefaultWarmStart);
-    // The planner's S: kDefaultSampleSteps, or the model's own where fewer (the tiny model's 5).
-    CHECK(warm.sampler.sample_steps == std::min(kDefaultSampleSteps, c.sample_steps));
+    CHECK(warm.settings.sampler.warm_start == PlannerConfig{}.sampler.warm_start);
+    // The planner's S: PlannerConfig{}.sampler.sample_steps, or the model's own where fewer (the tiny model's 5).
+    CHECK(warm.sampler().sample_steps == std::min(PlannerConfig{}.sampler.sample_steps, c.sample_steps));
     ModelConfig shipped_steps = c;
     shipped_steps.sample_steps = 10;
-    CHECK(DiffusionPlanner(MadbpModel(shipped_steps, 2)).sampler.sample_steps == kDefaultSampleSteps);
-    cold.sampler.warm_start = 0;
+    CHECK(DiffusionPlanner(MadbpModel(shipped_steps, 2)).sampler().sample_steps == PlannerConfig{}.sampler.sample_steps);
+    cold.settings.sampler.warm_start = 0;
     for (DiffusionPlanner* p : {&warm, &cold}) {  // the plain path, first plans from noise (line_start's own test below)
-        p->sampler.guidance = 0;
-        p->sampler.end_bend = 0;
-        p->line_start = false;
-        p->small_plan_candidates = 1;  // one window a robot, as the hand-drawn reference
+        p->settings.guidance.weight = 0;
+        p->settings.sampler.end_bend = 0;
+        p->settings.sampler.line_start = false;
+        p->settings.sampler.small_plan_candidates = 1;  // one window a robot, as the hand-drawn reference
     }
-    warm.sampler.warm_start = 2;  // of the tiny model's 5 steps
+    warm.settings.sampler.warm_start = 2;  // of the tiny model's 5 steps
     // The same draws by hand: the reference sampler's rng and model.
     MadbpModel copy(c, 2);
     copy.set_training(false);
@@ -1146,19 +1146,19 @@ TEST_CASE("planner: a warm start draws each robot's window from its last one shi
     World world = make_random_world("obstacles", n, 3);
     const Plan first = warm.plan(world), first_cold = cold.plan(world);  // no last window yet: both draw cold
     CHECK(first.waypoints == first_cold.waypoints);
-    sample_windows(copy, sched, warm.last_scene_batch(), warm.sampler, rng, x, out, buf);
+    sample_windows(copy, sched, warm.last_scene_batch(), warm.sampler(), rng, x, out, buf);
     expect_plan(world, first);
     for (int k = 0; k < 3; ++k) world.step(std::vector<Vec2>(n, Vec2{0.2, 0.1}));
     const Plan second = warm.plan(world), second_cold = cold.plan(world);
     warm_x.setZero(2, (long)H * n);
     for (int i = 0; i < n; ++i) REQUIRE(detail::warm_window(first.waypoints[i], 3, world.agents()[i].pos, c, warm_x, (long)i * H));
-    sample_windows(copy, sched, warm.last_scene_batch(), warm.sampler, rng, x, out, buf, nullptr, &warm_x);
+    sample_windows(copy, sched, warm.last_scene_batch(), warm.sampler(), rng, x, out, buf, nullptr, &warm_x);
     expect_plan(world, second);
     CHECK(second.waypoints != second_cold.waypoints);
     // A new episode (the world's clock went back): cold again.
     World next = make_random_world("obstacles", n, 4);
     const Plan third = warm.plan(next);
-    SamplerConfig no_warm = warm.sampler;
+    SamplerConfig no_warm = warm.sampler();
     no_warm.warm_start = 0;
     sample_windows(copy, sched, warm.last_scene_batch(), no_warm, rng, x, out, buf);
     expect_plan(next, third);
@@ -1168,12 +1168,12 @@ TEST_CASE("planner: line_start: a robot without a last window starts from a stra
     const ModelConfig c = tiny_config();  // no route subgoals: each robot heads for its goal
     const int H = c.horizon, n = 3;
     DiffusionPlanner planner(MadbpModel(c, 2), 11);
-    CHECK(planner.line_start == kDefaultLineStart);
-    planner.line_start = true;
-    planner.sampler.guidance = 0;  // the plain path
-    planner.sampler.end_bend = 0;
-    planner.sampler.warm_start = 2;  // of the tiny model's 5 DDIM steps
-    planner.small_plan_candidates = 1;  // one window a robot, as the hand-drawn reference
+    CHECK(planner.settings.sampler.line_start == PlannerConfig{}.sampler.line_start);
+    planner.settings.sampler.line_start = true;
+    planner.settings.guidance.weight = 0;  // the plain path
+    planner.settings.sampler.end_bend = 0;
+    planner.settings.sampler.warm_start = 2;  // of the tiny model's 5 DDIM steps
+    planner.settings.sampler.small_plan_candidates = 1;  // one window a robot, as the hand-drawn reference
     MadbpModel copy(c, 2);
     copy.set_training(false);
     NoiseSchedule sched(c.diffusion_steps);
@@ -1196,11 +1196,11 @@ TEST_CASE("planner: line_start: a robot without a last window starts from a stra
     }
     CHECK(line(0, 2L * H - 1) == doctest::Approx(near.x / c.window_scale));  // robot 1's line ends on its goal
     CHECK(line(1, 2L * H - 1) == doctest::Approx(near.y / c.window_scale));
-    sample_windows(copy, sched, planner.last_scene_batch(), planner.sampler, rng, x, out, buf, nullptr, &line);
+    sample_windows(copy, sched, planner.last_scene_batch(), planner.sampler(), rng, x, out, buf, nullptr, &line);
     check_plan_is(x, world, first, c);
     // Without line_start the same first plan draws all S steps from noise.
     DiffusionPlanner from_noise(MadbpModel(c, 2), 11);
-    from_noise.line_start = false;
-    from_noise.sampler = planner.sampler;
+    from_noise.settings = planner.settings;
+    from_noise.settings.sampler.line_start = false;
     CHECK(from_noise.plan(world).waypoints != first.waypoints);
 }

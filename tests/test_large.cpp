@@ -4,7 +4,6 @@
 #include <doctest/doctest.h>
 
 #include "madbp_train.hpp"
-#include "methods.hpp"  // the tool's eval --decentralised (DecentralisedTeam)
 #include "tiny_model.hpp"
 
 #include "alloc_counter_api.hpp"
@@ -145,7 +144,7 @@ TEST_CASE("large: route subgoals lie on a collision-free way to the goal and wit
 TEST_CASE("large: automatic neighbourhood planning exactly when the world is larger than in training or the team than n_max") {
     ModelConfig c = local_config();  // n_train_max 3 (automatic K = 5), n_max 6, trained in half-size 1.2
     DiffusionPlanner p(MadbpModel(c, 1));
-    CHECK(p.neighbours == -1);
+    CHECK(p.settings.neighbourhood.neighbours == -1);
     CHECK(p.neighbourhood(3, 1.2) == 3);  // as trained: one scene of the team
     CHECK(p.neighbourhood(1, 1.2) == 1);
     CHECK(p.neighbourhood(5, 1.2) == 5);  // a larger team in the training world: still one scene
@@ -170,16 +169,16 @@ TEST_CASE("large: automatic neighbourhood planning exactly when the world is lar
         CHECK(p.last_scene_batch().B == 7);
         CHECK(p.last_scene_batch().n == 5);
     }
-    p.neighbours = 0;  // asked for: the whole team, in any world
+    p.settings.neighbourhood.neighbours = 0;  // asked for: the whole team, in any world
     CHECK(p.neighbourhood(5, 2.4) == 5);
     {
         World w = make_random_world("empty", 2, 0, 2.4);
         p.plan(w);
         CHECK(p.last_scene_batch().B == 1);
     }
-    p.neighbours = 2;
+    p.settings.neighbourhood.neighbours = 2;
     CHECK(p.neighbourhood(5, 1.2) == 2);
-    p.neighbours = -2;
+    p.settings.neighbourhood.neighbours = -2;
     CHECK_THROWS_WITH_AS(p.neighbourhood(5, 1.2), doctest::Contains("neighbours"), std::invalid_argument);
     // Unknown n_train_max (an older checkpoint): K = n_max.
     ModelConfig old = tiny_config();
@@ -219,11 +218,11 @@ TEST_CASE("large: a robot planning for itself gets the window the team plan give
         c.velocity_context = velocity;  // then the velocities travel in Neighbour::vel and plan_robot's vel
         c.priority_context = velocity;  // and the ids in Neighbour::id and plan_robot's id
         DiffusionPlanner team(MadbpModel(c, 2), 9);
-        if (conflict_aware) team.sampler.guidance = 0.004f, team.sampler.candidates = 2;
+        if (conflict_aware) team.settings.guidance.weight = 0.004f, team.settings.sampler.candidates = 2;
         const Plan plan = team.plan(world);
         for (int i = 0; i < world.size(); ++i) {
             DiffusionPlanner robot(MadbpModel(c, 2), 9);
-            robot.sampler = team.sampler;
+            robot.settings = team.settings;
             std::vector<DiffusionPlanner::Neighbour> others;
             for (int j = 0; j < world.size(); ++j)
                 if (j != i) others.push_back({world.agents()[j].pos, world.agents()[j].goal, world.agents()[j].vel, world.agents()[j].id});
@@ -284,18 +283,18 @@ TEST_CASE("large: plan_robot starts from its last windows when given its clock, 
     const World start = world;
     const int kWarm = 2, kElapsed = 3;  // of the tiny model's 5 DDIM steps; within its window of 7 waypoints
     DiffusionPlanner team(MadbpModel(c, 2), 9);
-    team.sensing_radius = 0.2;  // every robot alone in its scene: its warm window is its own last one in both
-    team.sampler.warm_start = kWarm;
-    team.line_start = false;  // without last windows, from noise (line_start's own test is in test_interaction)
+    team.settings.neighbourhood.sensing_radius = 0.2;  // every robot alone in its scene: its warm window is its own last one in both
+    team.settings.sampler.warm_start = kWarm;
+    team.settings.sampler.line_start = false;  // without last windows, from noise (line_start's own test is in test_interaction)
     team.plan(world);
     for (int k = 0; k < kElapsed; ++k) world.step(std::vector<Vec2>(world.size(), Vec2{0.3, -0.2}));
     const Plan warm_plan = team.plan(world);
     // Robot i's two plans, at step 0 and then at `second_step`, with its neighbours as told.
     auto robot_plans = [&](int i, double radius, long second_step, bool reversed, int unknown_id = 0) {
         DiffusionPlanner robot(MadbpModel(c, 2), 9);
-        robot.sensing_radius = radius;
-        robot.sampler.warm_start = kWarm;
-        robot.line_start = false;
+        robot.settings.neighbourhood.sensing_radius = radius;
+        robot.settings.sampler.warm_start = kWarm;
+        robot.settings.sampler.line_start = false;
         std::vector<Vec2> window;
         const Agent &me0 = start.agents()[i], &me = world.agents()[i];
         robot.plan_robot(start.map(), me0.id, me0.pos, me0.goal, others_of(start, i, reversed), window, me0.vel, 0);
@@ -319,24 +318,24 @@ TEST_CASE("large: plan_robot starts from its last windows when given its clock, 
     CHECK_THROWS_WITH_AS(robot.plan_robot(world.map(), 0, {0, 0}, {1, 1}, {}, window, {0, 0}, -2), doctest::Contains("step"), std::invalid_argument);
 }
 
-TEST_CASE("large: eval --decentralised plans each robot with plan_robot: first as the team's neighbourhood plan, then warm") {
+TEST_CASE("large: DecentralisedTeam plans each robot with plan_robot: first as the team's neighbourhood plan, then warm") {
     const ModelConfig c = local_config();
     auto model = std::make_shared<const MadbpModel>(c, 2);
-    madbp_cli::PlannerOptions options;
-    options.warm_start = 2;  // of the tiny model's 5 DDIM steps
+    PlannerConfig options;
+    options.sampler.warm_start = 2;  // of the tiny model's 5 DDIM steps
     World world = make_random_world("obstacles", 3, 4, 2.4);  // a larger world: the team plans a scene per robot
     const World start = world;
-    madbp_cli::DecentralisedTeam robots(model, options, 9);
-    const auto team = madbp_cli::make_planner(*model, options, 9);
-    const Plan first = robots.plan(world), team_first = team->plan(world);
+    DecentralisedTeam robots(model, options, 9);
+    DiffusionPlanner team(model->clone(), 9, options);
+    const Plan first = robots.plan(world), team_first = team.plan(world);
     REQUIRE(first.ids == team_first.ids);
     for (int i = 0; i < world.size(); ++i) CHECK(max_gap(first.waypoints[i], team_first.waypoints[i]) < 1e-4);
     // Three steps on, each robot starts from its last windows: the plan differs from a cold team's.
     for (int k = 0; k < 3; ++k) world.step(std::vector<Vec2>(world.size(), Vec2{0.3, -0.2}));
     const Plan second = robots.plan(world);
-    madbp_cli::PlannerOptions cold_options = options;
-    cold_options.warm_start = 0;
-    madbp_cli::DecentralisedTeam cold(model, cold_options, 9);
+    PlannerConfig cold_options = options;
+    cold_options.sampler.warm_start = 0;
+    DecentralisedTeam cold(model, cold_options, 9);
     cold.plan(start);
     const Plan cold_second = cold.plan(world);
     double gap = 0;
@@ -344,7 +343,7 @@ TEST_CASE("large: eval --decentralised plans each robot with plan_robot: first a
     CHECK(gap > 1e-5);
 }
 
-TEST_CASE("large: eval --decentralised asks for the team's next plan when a robot's planner asks (one waits at a passage)") {
+TEST_CASE("large: DecentralisedTeam asks for the team's next plan when a robot's planner asks (one waits at a passage)") {
     // A wall across the world with a one-lane corridor through its middle; two robots head-on.
     WorldMap map;
     const double h = map.half_size;
@@ -354,9 +353,9 @@ TEST_CASE("large: eval --decentralised asks for the team's next plan when a robo
     world.add_agent({0, 0.9}, {0, -0.9});
     auto model = std::make_shared<const MadbpModel>(local_config(), 2);
     for (int after : {0, 3}) {
-        madbp_cli::PlannerOptions options;
-        options.passage_replan = after;
-        madbp_cli::DecentralisedTeam robots(model, options, 9);
+        PlannerConfig options;
+        options.traffic.passage_replan = after;
+        DecentralisedTeam robots(model, options, 9);
         CHECK(robots.plan(world).replan_after == after);
     }
 }

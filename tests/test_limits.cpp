@@ -5,7 +5,7 @@
 // with bad_alloc instead of swapping. The cap is skipped under AddressSanitizer, which reserves
 // terabytes of virtual memory. The whole file runs in a few seconds.
 #include "madbp_train.hpp"
-#include "methods.hpp"  // the tool's Args, read_planner_options, refuse_scene_overrides
+#include "methods.hpp"  // the tool's Args, read_planner_choice, refuse_scene_overrides
 #include "tiny_model.hpp"
 
 #include <doctest/doctest.h>
@@ -385,13 +385,26 @@ TEST_CASE("limits: a NUL byte inside a scene number gives the whole message") {
     CHECK(printable(std::string(100, 'a'), 8) == "aaaaaaaa...");
 }
 
-TEST_CASE("limits: --goal-reach -0.5 is an error, not silently the default") {
-    Args a(std::vector<std::string>{"--goal-reach", "-0.5"});
-    CHECK_THROWS_WITH_AS(madbp_cli::read_planner_options(a), doctest::Contains("--goal-reach: -0.5 is out of range"), std::invalid_argument);
-    Args b(std::vector<std::string>{"--goal-reach", "0.3"});
-    CHECK(madbp_cli::read_planner_options(b).goal_reach == doctest::Approx(0.3));
-    Args c(std::vector<std::string>{});
-    CHECK(madbp_cli::read_planner_options(c).goal_reach < 0);  // absent: the model's default
+TEST_CASE("limits: planner flags: --set and --neighbours are checked against the settings table; no silent sentinels") {
+    auto choice = [](std::vector<std::string> v) { Args a(v); return madbp_cli::read_planner_choice(a); };
+    CHECK_THROWS_WITH_AS(choice({"--set", "sampler.goal_reach=-0.5"}),
+                         doctest::Contains("planner setting sampler.goal_reach: must be [0, 100] or auto (got -0.5)"), std::invalid_argument);
+    CHECK(choice({"--set", "sampler.goal_reach=0.3"}).settings.sampler.goal_reach == doctest::Approx(0.3));
+    CHECK(choice({}).settings.sampler.goal_reach < 0);  // absent: automatic, the model's default_goal_reach
+    CHECK(choice({"--set", "sampler.goal_reach=auto"}).settings.sampler.goal_reach < 0);
+    CHECK_THROWS_WITH_AS(choice({"--set", "guidance.wieght=1"}), doctest::Contains("'guidance.wieght': no such setting"), std::invalid_argument);
+    CHECK_THROWS_WITH_AS(choice({"--set", "guidance.weight"}), doctest::Contains("--set: expected GROUP.NAME=VALUE"), std::invalid_argument);
+    CHECK_THROWS_WITH_AS(choice({"--set", "sampler.candidates=2.5"}), doctest::Contains("expected a whole number"), std::invalid_argument);
+    CHECK_THROWS_WITH_AS(choice({"--set", "sampler.candidates=65"}), doctest::Contains("must be [1, 64]"), std::invalid_argument);
+    CHECK_THROWS_WITH_AS(choice({"--neighbours", "-2"}), doctest::Contains("neighbourhood.neighbours: must be [0, 1024] or auto"), std::invalid_argument);
+    CHECK_THROWS_WITH_AS(choice({"--preset", "fast"}), doctest::Contains("--preset: expected tuned or paper"), std::invalid_argument);
+    // --set may be given many times, in order; it goes after the preset and the daily flags.
+    const auto c = choice({"--preset", "paper", "--neighbours", "4", "--set", "guidance.weight=0.01", "--set=guidance.weight=0.02",
+                           "--set", "traffic.take_turns=true"});
+    CHECK(c.settings.neighbourhood.neighbours == 4);
+    CHECK(c.settings.guidance.weight == 0.02f);
+    CHECK(c.settings.traffic.take_turns);
+    CHECK(c.settings.sampler.warm_start == 0);  // the rest is the paper's
     Args d(std::vector<std::string>{"--seed", "-1"});
     CHECK_THROWS_WITH_AS(d.integer("--seed", 0, 0), doctest::Contains("out of range"), std::invalid_argument);
 }

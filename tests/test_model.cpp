@@ -261,9 +261,9 @@ TEST_CASE("planner: plans every agent, rejects bad input") {
     World crowded = make_random_world("empty", 5, 3);
     CHECK(planner.plan(crowded).ids.size() == 5);
     CHECK(planner.last_scene_batch().B == 5);
-    planner.neighbours = 0;
+    planner.settings.neighbourhood.neighbours = 0;
     CHECK_THROWS_WITH_AS(planner.plan(crowded), doctest::Contains("n_max"), std::invalid_argument);
-    planner.neighbours = -1;
+    planner.settings.neighbourhood.neighbours = -1;
     // A team of zero plans nothing.
     World none;
     CHECK(planner.plan(none).ids.empty());
@@ -368,14 +368,14 @@ TEST_CASE("planner: neighbourhood planning gives each agent the context of itsel
     for (int i = 0; i < 5; ++i) w.add_agent(starts[i], -starts[i]);
     // K >= n: the whole team in one scene, exactly the paper's planner.
     DiffusionPlanner whole(MadbpModel(c, 5), 11), wide(MadbpModel(c, 5), 11);
-    whole.neighbours = 0;
-    wide.neighbours = 5;
+    whole.settings.neighbourhood.neighbours = 0;
+    wide.settings.neighbourhood.neighbours = 5;
     Plan a = whole.plan(w), b = wide.plan(w);
     CHECK(a.waypoints[3][2].x == b.waypoints[3][2].x);
     // K = 2: agent i is planned in a scene of itself (slot 0) and its nearest agent (slot 1).
     DiffusionPlanner local(MadbpModel(c, 5), 11);
-    local.neighbours = 2;
-    local.sensing_radius = 10;  // every nearest agent counts, however far (agent 4's is 1.8 away)
+    local.settings.neighbourhood.neighbours = 2;
+    local.settings.neighbourhood.sensing_radius = 10;  // every nearest agent counts, however far (agent 4's is 1.8 away)
     Plan p = local.plan(w);
     REQUIRE(p.ids.size() == 5);
     for (size_t i = 0; i < 5; ++i) {
@@ -400,13 +400,13 @@ TEST_CASE("planner: neighbourhood planning gives each agent the context of itsel
     CHECK_THROWS_AS(whole.plan(crowd), std::invalid_argument);
     // Within a sensing radius of 1.5 agent 4 (1.8 from its nearest) has no neighbour: a scene of
     // one; the default radius (2 position_scale = 2.4) includes its nearest.
-    local.sensing_radius = 1.5;
+    local.settings.neighbourhood.sensing_radius = 1.5;
     local.plan(w);
     CHECK(local.last_scene_batch().count[4] == 1);
     CHECK(local.last_scene_batch().count[0] == 2);
-    local.sensing_radius = 0;
+    local.settings.neighbourhood.sensing_radius = 0;
     local.plan(w);
     CHECK(local.last_scene_batch().count[4] == 2);
-    local.neighbours = -2;
+    local.settings.neighbourhood.neighbours = -2;
     CHECK_THROWS_AS(local.plan(w), std::invalid_argument);
 }

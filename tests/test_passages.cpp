@@ -315,7 +315,7 @@ TEST_CASE("passages: bad parameters are named") {
     std::vector<char> at{0}, wait;
     std::vector<Vec2> point;
     CHECK_THROWS_WITH_AS(pc.arbitrate(guide, WorldMap{}, 1, pos.data(), goal.data(), at.data(), wait, point),
-                         doctest::Contains("PassageParams"), std::invalid_argument);
+                         doctest::Contains("TrafficConfig"), std::invalid_argument);
     pc.params.lookahead = std::nan("");
     CHECK_THROWS_AS(pc.arbitrate(guide, WorldMap{}, 1, pos.data(), goal.data(), at.data(), wait, point), std::invalid_argument);
     pc.params.lookahead = 1.2;
@@ -333,7 +333,7 @@ TEST_CASE("planner: with take_turns a waiting robot is given its waiting point a
     world.add_agent({0, 0.9}, {0, -0.9});
     for (int turns = 0; turns < 2; ++turns) {
         DiffusionPlanner planner(MadbpModel(c, 1), 2);
-        planner.take_turns = turns != 0;
+        planner.settings.traffic.take_turns = turns != 0;
         planner.plan(world);
         CHECK(planner.last_waiting() == std::vector<char>{kGoOn, turns ? kWait : kGoOn});
         const SceneBatch& b = planner.last_scene_batch();
@@ -358,15 +358,15 @@ TEST_CASE("planner: while robots may meet in a passage the plan asks to be repla
     apart.add_agent({-0.8, -0.7}, {0.8, -0.7});
     apart.add_agent({-0.8, -1.0}, {0.8, -1.0});
     DiffusionPlanner planner(MadbpModel(c, 1), 2);
-    CHECK(planner.passage_replan == kDefaultPassageReplan);
-    planner.passage_replan = 3;
+    CHECK(planner.settings.traffic.passage_replan == PlannerConfig{}.traffic.passage_replan);
+    planner.settings.traffic.passage_replan = 3;
     CHECK(planner.plan(head_on).replan_after == 3);
     CHECK(planner.replan_after() == 3);
     CHECK(planner.plan(apart).replan_after == 0);
-    planner.passage_replan = 0;
+    planner.settings.traffic.passage_replan = 0;
     CHECK(planner.plan(head_on).replan_after == 0);
-    planner.passage_replan = 3;
-    planner.take_turns = false;
+    planner.settings.traffic.passage_replan = 3;
+    planner.settings.traffic.take_turns = false;
     CHECK(planner.plan(head_on).replan_after == 0);
 }
 

@@ -1,7 +1,7 @@
 // bench_alloc.cpp - heap allocations per diffusion plan once sizes are steady (SPEC 9: none).
 // A program of its own because it replaces malloc and operator new (tests/alloc_counter.hpp);
 // the shipped tool keeps the system allocator.
-//   build/bench_alloc [--model FILE] [--agents 1,2,4,8,16,32,64] [--plans N] [--guidance W] [--candidates K] [--json]
+//   build/bench_alloc [--model FILE] [--agents 1,2,4,8,16,32,64] [--plans N] [--set GROUP.NAME=VALUE ...] [--json]
 // Worlds as bench --plan's: half-size 1.2 up to 8 robots, 2.4 up to 32 (neighbourhoods), 3.4 beyond;
 // plans alternate between a world and the same world 8 steps on, cold and warm-started.
 #include <cstdio>
@@ -19,8 +19,8 @@ int main(int argc, char** argv) {
         std::string model_path = a.str("--model", "");
         std::vector<long> teams = a.integers("--agents", "1,2,4,8,16,32,64", 1, 1024);
         int plans = (int)a.integer("--plans", 10, 1, 1000000);
-        const double guidance = a.real("--guidance", madbp::kDefaultGuidance, 0, 1e6);  // conflict-aware sampling (SamplerConfig)
-        const int candidates = (int)a.integer("--candidates", 1, 1, madbp::kMaxCandidates);
+        madbp::PlannerConfig settings;  // tuned; --set changes any setting
+        apply_planner_settings(a, settings);
         bool json = a.flag("--json");
         a.finish();
         if (!MADBP_TEST_COUNT_ALLOCS) throw std::runtime_error("built with a sanitizer that owns malloc: nothing can be counted");
@@ -28,9 +28,7 @@ int main(int argc, char** argv) {
         if (!json) std::printf("alloc bench: %s\n%4s %12s\n", model_path.empty() ? "default config" : model_path.c_str(), "n", "allocs/plan");
         for (long n : teams) {
             madbp::MadbpModel model = model_path.empty() ? madbp::MadbpModel(madbp::ModelConfig{}) : madbp::load_model(model_path);
-            madbp::DiffusionPlanner planner(std::move(model));
-            planner.sampler.guidance = (float)guidance;
-            planner.sampler.candidates = candidates;
+            madbp::DiffusionPlanner planner(std::move(model), 0, settings);
             madbp::World world = madbp::make_random_world("empty", (int)n, 0, n > 32 ? 3.4 : n > 8 ? 2.4 : 1.2);
             const madbp::World later = held_still(world, 8);  // its plans are warm-started
             madbp::Plan plan;

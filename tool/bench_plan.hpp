@@ -59,23 +59,19 @@ inline double eigen_gemm_rate(int m, int kdim, int n) {
 }
 
 inline int bench_plan(Args& a) {
-    std::string model_path = a.str("--model", "");
+    const PlannerChoice choice = read_planner_choice(a);  // the shipped model and the tuned planner unless told
     std::vector<long> teams = a.integers("--agents", "1,2,4,8,16,32,64", 1, 1024);
     int plans = (int)a.integer("--plans", 50, 1, 1000000);
-    int steps = (int)a.integer("--sample-steps", 0, 0, 1000);
     uint64_t seed = (uint64_t)a.integer("--seed", 0, 0);
-    const double guidance = a.real("--guidance", madbp::kDefaultGuidance, 0, 1e6);
-    const int candidates = (int)a.integer("--candidates", 1, 1, madbp::kMaxCandidates);
-    const int small_plan_candidates = (int)a.integer("--small-plan-candidates", madbp::kDefaultSmallPlanCandidates, 1, madbp::kMaxCandidates);
-    const double keep_right = a.real("--keep-right", madbp::kDefaultKeepRight, 0, 1e6);
-    const int warm_start = (int)a.integer("--warm-start", madbp::kDefaultWarmStart, 0, 1000);
-    const bool line_start = a.integer("--line-start", madbp::kDefaultLineStart ? 1 : 0, 0, 1) != 0;
     bool json = a.flag("--json");
     a.finish();
+    if (choice.decentralised) throw std::invalid_argument("--decentralised: bench --plan times a team's plans (plan_robot: --agents 1)");
     madbp::set_num_threads(1);  // SPEC 9: one core
-    madbp::ModelConfig config;
-    if (!model_path.empty()) config = madbp::load_model(model_path).config;
-    const int S = steps > 0 ? steps : madbp::planner_sample_steps(config);
+    const std::string& model_path = choice.model_path;
+    const madbp::MadbpModel loaded = madbp::load_model(model_path);
+    const madbp::ModelConfig& config = loaded.config;
+    const madbp::SamplerConfig sc = choice.settings.sampler_config(config);
+    const int S = sc.sample_steps;
     // The GEMM of the first down block's convolution for 8 agents: (C0, D*k) x (D*k, H*8).
     const double gemm = eigen_gemm_rate(config.channels[0], config.dim * config.kernel, config.horizon * 8);
     if (!json)
@@ -87,23 +83,15 @@ inline int bench_plan(Args& a) {
                     "new_ms: a first plan of a new world on the same map (new goals: their goal fields are made);\n"
                     "expert: the guided expert's ms per plan; GFLOP/s: of a first plan\n"
                     "%4s %6s %10s %10s %10s %10s %10s %8s\n",
-                    model_path.empty() ? "default config (random weights: time does not depend on them)" : model_path.c_str(), S, guidance, keep_right, candidates,
-                    madbp::kSmallPlanWindows, small_plan_candidates, warm_start, line_start ? 1 : 0, config.channels[0], config.dim * config.kernel, config.dim * config.kernel, config.horizon * 8, gemm, "n",
+                    model_path.c_str(), S, sc.guidance, sc.keep_right, sc.candidates,
+                    madbp::kSmallPlanWindows, choice.settings.sampler.small_plan_candidates, sc.warm_start, choice.settings.sampler.line_start ? 1 : 0, config.channels[0], config.dim * config.kernel, config.dim * config.kernel, config.horizon * 8, gemm, "n",
                     "scenes", "ms/plan", "warm_ms", "new_ms", "expert_ms", "GFLOP/s", "of GEMM");
     double robot_ms = 0, robot_warm_ms = 0;
     int robot_K = 0;
     for (long n : teams) {
-        madbp::MadbpModel model = model_path.empty() ? madbp::MadbpModel(config, seed) : madbp::load_model(model_path);
-        madbp::DiffusionPlanner planner(std::move(model), seed);
-        planner.sampler.sample_steps = S;
-        planner.sampler.guidance = (float)guidance;
-        planner.sampler.candidates = candidates;
-        planner.small_plan_candidates = small_plan_candidates;
-        planner.sampler.keep_right = (float)keep_right;
-        planner.sampler.warm_start = warm_start;
-        planner.line_start = line_start;
+        madbp::DiffusionPlanner planner(loaded.clone(), seed, choice.settings);
         // DDIM steps of a first plan: with line start and warm start on, the last W, else all S.
-        const int first_steps = line_start && planner.sampler.warm_starts() ? warm_start : S;
+        const int first_steps = choice.settings.sampler.line_start && sc.warm_starts() ? sc.warm_start : S;
         // Larger teams need a larger world to spawn in (starts and goals 0.25 apart).
         const double half_size = n > 32 ? 3.4 : n > 8 ? 2.4 : 1.2;
         madbp::World world = madbp::make_random_world("empty", (int)n, seed, half_size);
@@ -163,7 +151,7 @@ inline int bench_plan(Args& a) {
         }
         if (json)
             std::printf("%s\n", Json().add("bench", "plan").add("agents", n).add("scenes", scenes).add("per_scene", per_scene).add("sample_steps", S)
-                                    .add("guidance", guidance).add("keep_right", keep_right).add("candidates", drawn).add("warm_start", warm_start).add("line_start", line_start ? 1 : 0).add("ms_per_plan", ms).add("warm_ms_per_plan", warm_ms).add("new_world_ms_per_plan", new_ms).add("expert_ms_per_plan", expert_ms)
+                                    .add("guidance", sc.guidance).add("keep_right", sc.keep_right).add("candidates", drawn).add("warm_start", sc.warm_start).add("line_start", choice.settings.sampler.line_start ? 1 : 0).add("ms_per_plan", ms).add("warm_ms_per_plan", warm_ms).add("new_world_ms_per_plan", new_ms).add("expert_ms_per_plan", expert_ms)
                                     .add("gflops", rate).add("gemm_gflops", gemm).add("share_of_gemm", rate / gemm).line().c_str());
         else {
             const std::string shape = std::to_string(scenes) + "x" + std::to_string(per_scene) + (drawn > 1 ? "x" + std::to_string(drawn) : "");

@@ -114,6 +114,25 @@ struct Args {
     }
 };
 
+// Applies the planner flags that change settings to `settings`: --neighbours, --sensing-radius
+// (the daily ones) and every --set GROUP.NAME=VALUE (repeatable; the PlannerConfig table's names);
+// then validates them all.
+inline void apply_planner_settings(Args& a, madbp::PlannerConfig& settings) {
+    const std::pair<const char*, const char*> daily[] = {{"--neighbours", "neighbourhood.neighbours"},
+                                                         {"--sensing-radius", "neighbourhood.sensing_radius"}};
+    for (const auto& [flag, name] : daily) {
+        const std::string v = a.str(flag, "");
+        if (!v.empty()) settings.set(name, v);
+    }
+    for (const std::string& item : a.all("--set")) {
+        const size_t eq = item.find('=');
+        if (eq == std::string::npos || eq == 0)
+            throw std::invalid_argument("--set: expected GROUP.NAME=VALUE like guidance.keep_right=300, got '" + madbp::printable(item) + "'");
+        settings.set(item.substr(0, eq), item.substr(eq + 1));
+    }
+    settings.validate();
+}
+
 // `world` `steps` steps on with every robot held still: a plan of it right after a plan of
 // `world` starts from that plan's windows (SamplerConfig::warm_start). bench --plan times such
 // warm plans, bench_alloc counts their allocations.

@@ -53,6 +53,11 @@ std::string read_scenario(Args& a, const std::string& scene_path) {
 // ---------------------------------------------------------------------------------------------
 int cmd_eval(Args& a) {
     if (a.has("--suite")) return cmd_suite(a);
+    if (a.flag("--list-settings")) {
+        a.finish();
+        std::fputs(planner_settings_text().c_str(), stdout);
+        return 0;
+    }
     if (a.flag("--help")) {
         std::printf(
             "madbp eval - success, collisions and steps of a method over seeded episodes (SPEC 10)\n"
@@ -72,6 +77,7 @@ int cmd_eval(Args& a) {
             "  --max-steps N     episode step limit (default 100 x half-size / 1.2, of the scene's world with --scene)\n"
             "  --json            one JSON object per cell instead of the table\n"
             "  --suite paper     every table and figure of the paper plus ours (--suite paper --help)\n"
+            "  --list-settings   every planner setting (--set) with its defaults, range and meaning\n"
             "Columns: method, map, n_train, n, episodes, success, success_se, collisions (per\n"
             "episode), steps (mean of successful episodes), plan_ms (mean ms per decision: one plan for\n"
             "planners, one action for MAPPO and MADiff).\n",
@@ -266,10 +272,9 @@ int cmd_bench(Args& a) {
             "  --nn           benchmark the neural-network kernels instead\n"
             "  --plan         benchmark the diffusion planner instead: ms per plan and GFLOP/s against\n"
             "                 Eigen's GEMM (allocations: build/bench_alloc); with --agents LIST (default\n"
-            "                 1,2,4,8,16,32), --plans N, --sample-steps S, --model FILE, --guidance W,\n"
-            "                 --keep-right K, --candidates K, --small-plan-candidates K, --warm-start W,\n"
-            "                 --line-start 0|1 (as for eval --method madbp; ms/plan is a first plan,\n"
-            "                 warm_ms a plan 8 steps later)\n"
+            "                 1,2,4,8,16,32,64), --plans N, and the planner flags of eval --method madbp\n"
+            "                 (--model, --preset, --neighbours, --set; default the shipped model, tuned);\n"
+            "                 ms/plan is a first plan, warm_ms a plan 8 steps later\n"
             "  --json         one JSON object per thread count\n");
         return 0;
     }

@@ -12,221 +12,86 @@
 namespace madbp_cli {
 
 
-// Options of the diffusion planner, shared by eval, render and demo.
-struct PlannerOptions {
+// What the tool plans with: the model file, the planner's settings (madbp::PlannerConfig) and
+// whether robots plan for themselves. Shared by eval, render, demo, bench --plan and dagger.
+struct PlannerChoice {
     std::string model_path;
-    int sample_steps = 0;      // 0: the model's default
-    bool goal_inpaint = true;
-    double goal_reach = -1;    // < 0: the model's default_goal_reach
-    int neighbours = -1;       // DiffusionPlanner::neighbours (-1: automatic)
-    double sensing_radius = 0; // DiffusionPlanner::sensing_radius (0: 2 x the model's position_scale)
-    double guidance = madbp::kDefaultGuidance;  // SamplerConfig::guidance (0: off)
-    int candidates = 1;        // SamplerConfig::candidates (1: off)
-    int small_plan_candidates = madbp::kDefaultSmallPlanCandidates;  // DiffusionPlanner::small_plan_candidates (1: off)
-    double keep_right = madbp::kDefaultKeepRight;  // SamplerConfig::keep_right (0: off)
-    double end_bend = madbp::kDefaultEndBend;  // SamplerConfig::end_bend (0: off)
-    madbp::WindowCost cost;    // SamplerConfig::cost
-    double priority_weight = madbp::FollowerConfig{}.priority_weight;  // 1: the filter weighs robots equally
-    double lookahead = madbp::FollowerConfig{}.lookahead;  // 0: track the waypoint planned for this step
-    double filter_rate = madbp::FollowerConfig{}.filter.rate;  // the safety filter's barrier rate, 1/s
-    bool take_turns = true;    // DiffusionPlanner::take_turns (one-lane passages)
-    madbp::PassageParams passage;  // which passages, who waits where, when they go, going around
-    int passage_replan = madbp::kDefaultPassageReplan;  // DiffusionPlanner::passage_replan (0: off)
-    double replan_error = madbp::FollowerConfig{}.replan_error;  // 0: replan only every m steps
-    int warm_start = madbp::kDefaultWarmStart;  // SamplerConfig::warm_start (0: off)
-    bool line_start = madbp::kDefaultLineStart;  // DiffusionPlanner::line_start
-    bool decentralised = false;  // each robot plans for itself (DiffusionPlanner::plan_robot), a planner each
+    madbp::PlannerConfig settings;
+    bool decentralised = false;  // each robot plans for itself (madbp::DecentralisedTeam)
 };
-// "A,M,G": the agent, map and goal weights of the window cost.
-inline void read_cost_weights(const std::string& s, madbp::WindowCost& w) {
-    if (s.empty()) return;
-    float v[3];
-    char tail = 0;
-    if (std::sscanf(s.c_str(), "%f,%f,%f%c", &v[0], &v[1], &v[2], &tail) != 3)
-        throw std::invalid_argument("--cost-weights: expected three numbers AGENT,MAP,GOAL like 100,100,200, got '" + s + "'");
-    for (float x : v)
-        if (!(x >= 0) || !std::isfinite(x)) throw std::invalid_argument("--cost-weights: weights must be finite and >= 0 (got '" + s + "')");
-    w.agent_weight = v[0];
-    w.map_weight = v[1];
-    w.goal_weight = v[2];
-}
-inline PlannerOptions read_planner_options(Args& a) {
-    PlannerOptions o;
+// The planner flags' help, for every subcommand that reads them.
+inline const char* kPlannerFlagsHelp =
+    "--model FILE (default models/madbp-default.safetensors), --preset tuned|paper (default tuned),\n"
+    "                    --neighbours K|auto, --sensing-radius R|auto, --set GROUP.NAME=VALUE (any planner\n"
+    "                    setting, repeatable; `madbp eval --list-settings` lists each with its default,\n"
+    "                    range and meaning), --decentralised (each robot plans for itself, plan_robot)";
+// --model, --preset, --neighbours, --sensing-radius, --set (repeatable), --decentralised. `setup`
+// (eval's --replan and --no-filter) goes in before --set, so an explicit setting wins.
+inline PlannerChoice read_planner_choice(Args& a, const MethodSetup* setup = nullptr) {
+    PlannerChoice o;
     o.model_path = a.str("--model", kDefaultModel);
-    o.sample_steps = (int)a.integer("--sample-steps", 0, 0, 1000);
-    o.goal_inpaint = !a.flag("--no-goal-inpaint");
-    o.goal_reach = a.real("--goal-reach", -1, 0, 100);  // a negative value is an error, not the default
-    o.neighbours = (int)a.integer("--neighbours", -1, -1, 1024);
-    o.sensing_radius = a.real("--sensing-radius", 0, 0, 1000);
-    o.guidance = a.real("--guidance", madbp::kDefaultGuidance, 0, 1e6);
-    o.candidates = (int)a.integer("--candidates", 1, 1, madbp::kMaxCandidates);
-    o.small_plan_candidates = (int)a.integer("--small-plan-candidates", o.small_plan_candidates, 1, madbp::kMaxCandidates);
-    o.keep_right = a.real("--keep-right", madbp::kDefaultKeepRight, 0, 1e6);
-    o.end_bend = a.real("--end-bend", o.end_bend, 0, 1);
-    read_cost_weights(a.str("--cost-weights", ""), o.cost);
-    o.cost.agent_margin = (float)a.real("--cost-margin", o.cost.agent_margin, 0, 10);
-    o.priority_weight = a.real("--priority-weight", o.priority_weight, 1, 1000);
-    o.lookahead = a.real("--lookahead", o.lookahead, 0, madbp::kMaxLookahead);
-    o.filter_rate = a.real("--filter-rate", o.filter_rate, 0.01, 9.99);  // < 1/dt (PlanFollower checks it against the world's dt)
-    o.take_turns = a.integer("--take-turns", o.take_turns ? 1 : 0, 0, 1) != 0;
-    madbp::PassageParams& p = o.passage;
-    p.one_lane_width = a.real("--one-lane-width", p.one_lane_width, 0, 100);
-    p.go_around = a.integer("--go-around", p.go_around ? 1 : 0, 0, 1) != 0;
-    p.spread = a.real("--spread", p.spread, 0, 100);
-    p.wait_back = a.real("--wait-back", p.wait_back, 0, 100);
-    p.wait_side = a.real("--wait-side", p.wait_side, 0, 100);
-    p.queue_spacing = a.real("--queue-spacing", p.queue_spacing, 0, 100);
-    p.spare = a.real("--spare", p.spare, 0, 100);
-    o.passage_replan = (int)a.integer("--passage-replan", o.passage_replan, 0, 1000);
-    o.replan_error = a.real("--replan-error", o.replan_error, 0, 100);
-    o.warm_start = (int)a.integer("--warm-start", o.warm_start, 0, 1000);
-    o.line_start = a.integer("--line-start", o.line_start ? 1 : 0, 0, 1) != 0;
+    const std::string preset = a.str("--preset", "tuned");
+    try {
+        o.settings = madbp::PlannerConfig::preset(preset);
+    } catch (const std::invalid_argument&) {
+        throw std::invalid_argument("--preset: expected tuned or paper, got '" + madbp::printable(preset) + "'");
+    }
+    if (setup) {
+        o.settings.follower.replan_every = setup->replan;
+        o.settings.follower.safety_filter = setup->filter;
+    }
+    apply_planner_settings(a, o.settings);
     o.decentralised = a.flag("--decentralised");
     return o;
 }
 
-// A planner on a copy of `model` (planners keep workspaces, so episodes running in parallel must
-// not share one) with the options' sampler and passage settings.
-inline std::unique_ptr<madbp::DiffusionPlanner> make_planner(const madbp::MadbpModel& model, const PlannerOptions& o, uint64_t seed) {
-    auto planner = std::make_unique<madbp::DiffusionPlanner>(model.clone(), seed);
-    if (o.sample_steps > 0) planner->sampler.sample_steps = o.sample_steps;
-    planner->sampler.goal_inpaint = o.goal_inpaint;
-    if (o.goal_reach >= 0) planner->sampler.goal_reach = (float)o.goal_reach;
-    planner->neighbours = o.neighbours;
-    planner->sensing_radius = o.sensing_radius;
-    planner->sampler.guidance = (float)o.guidance;
-    planner->sampler.candidates = o.candidates;
-    planner->small_plan_candidates = o.small_plan_candidates;
-    planner->sampler.keep_right = (float)o.keep_right;
-    planner->sampler.end_bend = (float)o.end_bend;
-    planner->sampler.cost = o.cost;
-    planner->sampler.warm_start = o.warm_start;
-    planner->line_start = o.line_start;
-    planner->take_turns = o.take_turns;
-    planner->passages.params = o.passage;
-    planner->passage_replan = o.passage_replan;
-    return planner;
-}
-
-// A team whose robots plan for themselves (eval --decentralised): each has its own planner
-// (same seed, as the README's robot loop) and calls plan_robot with every other robot's position,
-// goal, velocity and id, as if received from it, and its clock (the world's step). plan_ms is
-// per robot: the team's plans run one after another here, each robot's on its own computer there.
-class DecentralisedTeam {
-public:
-    DecentralisedTeam(std::shared_ptr<const madbp::MadbpModel> model, PlannerOptions o, uint64_t seed)
-        : model_(std::move(model)), options_(std::move(o)), seed_(seed) {}
-    madbp::Plan plan(const madbp::World& world) {
-        const auto t0 = std::chrono::steady_clock::now();
-        const auto& agents = world.agents();
-        const int n = (int)agents.size();
-        madbp::Plan out;
-        out.ids.resize(n);
-        out.waypoints.resize(n);
-        for (int i = 0; i < n; ++i) {
-            const madbp::Agent& me = agents[i];
-            others_.clear();
-            for (int j = 0; j < n; ++j)
-                if (j != i) others_.push_back({agents[j].pos, agents[j].goal, agents[j].vel, agents[j].id});
-            auto& planner = robots_[me.id];
-            if (!planner) planner = make_planner(*model_, options_, seed_);
-            planner->plan_robot(world.map(), me.id, me.pos, me.goal, others_, out.waypoints[i], me.vel, world.t());
-            out.ids[i] = me.id;
-            // The team replans when the first robot asks to (one waits at a passage in its scene).
-            const int after = planner->replan_after();
-            if (after > 0 && (out.replan_after == 0 || after < out.replan_after)) out.replan_after = after;
-        }
-        // What one robot pays: the team's plans ran one after another on this core.
-        out.plan_ms = std::chrono::duration<double, std::milli>(std::chrono::steady_clock::now() - t0).count() / std::max(n, 1);
-        return out;
-    }
-
-private:
-    std::shared_ptr<const madbp::MadbpModel> model_;
-    PlannerOptions options_;
-    uint64_t seed_;
-    std::map<int, std::unique_ptr<madbp::DiffusionPlanner>> robots_;  // by id: robots may join and leave
-    std::vector<madbp::DiffusionPlanner::Neighbour> others_;
-};
-
 // The planner policy of one episode: one planner for the team (plan), or one per robot
-// (--decentralised, plan_robot).
-inline madbp::PolicyFactory planner_factory(std::shared_ptr<const madbp::MadbpModel> model, const PlannerOptions& o, const MethodSetup& s) {
-    if (o.sample_steps > model->config.diffusion_steps)
-        throw std::invalid_argument("--sample-steps: must be <= the model's diffusion steps (" + std::to_string(model->config.diffusion_steps) + ")");
-    madbp::FollowerConfig fc;
-    fc.safety_filter = s.filter;
-    fc.replan_every = s.replan;
-    fc.priority_weight = o.priority_weight;
-    fc.lookahead = o.lookahead;
-    fc.filter.rate = o.filter_rate;
-    fc.replan_error = o.replan_error;
-    return [model, fc, o](const madbp::World&, uint64_t seed) -> std::unique_ptr<madbp::Policy> {
+// (--decentralised, plan_robot). Planners keep workspaces: every episode gets its own.
+inline madbp::PolicyFactory planner_factory(std::shared_ptr<const madbp::MadbpModel> model, const PlannerChoice& o) {
+    if (o.settings.sampler.sample_steps > model->config.diffusion_steps)
+        throw std::invalid_argument("planner setting sampler.sample_steps: must be <= the model's diffusion steps (" +
+                                    std::to_string(model->config.diffusion_steps) + ")");
+    return [model, o](const madbp::World&, uint64_t seed) -> std::unique_ptr<madbp::Policy> {
         if (o.decentralised)
             return std::make_unique<madbp::PlanFollower>(
-                [team = std::make_shared<DecentralisedTeam>(model, o, seed)](const madbp::World& w) { return team->plan(w); }, fc);
-        return std::make_unique<madbp::PlanFollower>(
-            [planner = std::shared_ptr<madbp::DiffusionPlanner>(make_planner(*model, o, seed))](const madbp::World& w) { return planner->plan(w); }, fc);
+                [team = std::make_shared<madbp::DecentralisedTeam>(model, o.settings, seed)](const madbp::World& w) { return team->plan(w); },
+                o.settings.follower);
+        auto planner = std::make_shared<madbp::DiffusionPlanner>(model->clone(), seed, o.settings);
+        return std::make_unique<madbp::PlanFollower>([planner](const madbp::World& w) { return planner->plan(w); }, o.settings.follower);
     };
 }
 
 // Loads the model once for every episode of a cell.
-inline MethodSpec madbp_method(const PlannerOptions& o, const MethodSetup& s) {
+inline MethodSpec madbp_method(const PlannerChoice& o) {
     // One thread per plan (SPEC 9 measures one core); eval --threads runs episodes in parallel.
     madbp::set_num_threads(1);
     auto shared = std::make_shared<const madbp::MadbpModel>(madbp::load_model(o.model_path));
     MethodSpec spec;
     spec.n_train = shared->config.n_train_max > 0 ? shared->config.n_train_max : -1;
-    spec.factory = planner_factory(shared, o, s);
+    spec.factory = planner_factory(shared, o);
     return spec;
+}
+
+// `madbp eval --list-settings`: every planner setting with both presets' values, its range and meaning.
+inline std::string planner_settings_text() {
+    const madbp::PlannerConfig tuned = madbp::PlannerConfig::tuned(), paper = madbp::PlannerConfig::paper();
+    std::string out = "Planner settings (--set GROUP.NAME=VALUE; --preset tuned|paper):\n";
+    char line[512];
+    std::snprintf(line, sizeof line, "%-30s %-7s %-7s %-22s %s\n", "setting", "tuned", "paper", "range", "meaning");
+    out += line;
+    for (const madbp::PlannerSetting& s : madbp::planner_settings()) {
+        std::snprintf(line, sizeof line, "%-30s %-7s %-7s %-22s %s\n", s.name, s.value_text(tuned).c_str(), s.value_text(paper).c_str(),
+                      s.range_text().c_str(), s.meaning);
+        out += line;
+        if (s.automatic) out += std::string(70, ' ') + "auto: " + s.automatic + "\n";
+    }
+    return out;
 }
 
 inline void register_nn_methods(std::vector<Method>& m) {
     m.push_back({"madbp",
-                 "MA-DBP diffusion planner + tracker (+ safety filter) (SPEC 5-8); --model FILE\n"
-                 "                    (default models/madbp-default.safetensors), --sample-steps S (DDIM\n"
-                 "                    steps; default 8, or the model's own if fewer),\n"
-                 "                    --no-goal-inpaint, --goal-reach R (world units; default 0.55),\n"
-                 "                    --neighbours K (each robot plans with its K-1 nearest; 0 = whole team;\n"
-                 "                    default: K = the model's n_train_max when the team or the world is larger\n"
-                 "                    than in training, else the whole team), --sensing-radius R (neighbours\n"
-                 "                    farther than R are left out; default 2 x the model's position scale, 2.4),\n"
-                 "                    conflict-aware sampling (issue 12): --guidance W (each DDIM step moves\n"
-                 "                    x0_hat's waypoints by -W * d cost / d waypoint; default 0.004, 0 = off), --candidates K\n"
-                 "                    (best of K windows per scene; default 1), --small-plan-candidates K (at least K for\n"
-                 "                    a plan of at most 4 robot windows: one scene of <= 4 robots; default 2, 1 = off),\n"
-                 "                    --cost-weights A,M,G (robot-robot, robot-map,\n"
-                 "                    goal; default 100,100,200), --cost-margin M (robot-robot, default 0.05),\n"
-                 "                    --keep-right K (robots meeting in the guided windows are also pushed to the\n"
-                 "                    right of their relative motion, so they pass; default 500, 0 = off),\n"
-                 "                    --end-bend B (a window heading for a goal within reach is bent to arrive\n"
-                 "                    there, not stop short; in [0, 1], default 1, 0 = off), --warm-start W (a plan\n"
-                 "                    runs the last W of the S DDIM steps from each robot's last window, noised to\n"
-                 "                    that level, instead of all S from noise; default 4, 0 = off), --line-start 0|1\n"
-                 "                    (a robot with no last window, e.g. in a first plan, starts from a straight line\n"
-                 "                    toward its goal or route subgoal instead, so it too runs W steps; default 1),\n"
-                 "                    --priority-weight W (safety-filter weight of the robot that goes first, as the\n"
-                 "                    expert's; default 4; 1 = all equal), --lookahead L (the tracker aims L steps\n"
-                 "                    ahead of the plan's waypoint for now; default 2.0, 0 = SPEC 8's),\n"
-                 "                    --filter-rate R (the safety filter's barrier rate, 1/s, below 1/dt; default 4,\n"
-                 "                    2.5 = SPEC 3.2's and the expert's), --replan-error E (replan early, after m/2\n"
-                 "                    steps at least, when a robot is more than E from its plan's waypoint for now;\n"
-                 "                    default 0.15, 0 = only every m steps),\n"
-                 "                    --take-turns 0|1 (robots meeting head-on in a one-lane corridor take turns,\n"
-                 "                    one waiting beside its mouth; default 1), --go-around 0|1 (where the corridor\n"
-                 "                    has a way around at most 1.0 longer, the one that would wait goes around it;\n"
-                 "                    default 1), --spread S (robots going around one take its two sides in turn:\n"
-                 "                    each the side whose way, plus S per robot already going that side, is\n"
-                 "                    shortest; default 0.3, 0 = all the shortest way), --one-lane-width W (passages\n"
-                 "                    narrower than W wall to wall are one-lane; default 0.47), --wait-back D,\n"
-                 "                    --queue-spacing D, --wait-side D (the first waiting robot waits D out from the\n"
-                 "                    mouth, each next D farther, D to the right; defaults 0.45, 0.3, 0.25), --spare D\n"
-                 "                    (one from the other mouth waits unless it would enter after those inside are D\n"
-                 "                    out; default 0), --passage-replan N (while robots may meet in a passage, replan\n"
-                 "                    after N steps, so the waiting go when it is clear; default 4, 0 = off), --decentralised\n"
-                 "                    (each robot plans for itself with plan_robot, its own planner and what the\n"
-                 "                    others tell it: positions, goals, velocities, ids; warm-started like the team's)",
-                 [](Args& a, const MethodSetup& s) { return madbp_method(read_planner_options(a), s); }});
+                 std::string("MA-DBP diffusion planner + tracker (+ safety filter) (SPEC 5-8);\n                    ") + kPlannerFlagsHelp,
+                 [](Args& a, const MethodSetup& s) { return madbp_method(read_planner_choice(a, &s)); }});
 }
 
 // ---------------------------------------------------------------------------------------------
@@ -451,10 +316,10 @@ inline int cmd_dagger(Args& a) {
             "  --lr X             fine-tune learning rate (default 1e-4)\n"
             "  --seed S           seed of the rollouts (round R: S + R x 10^7) and the fine-tunes (default 50000000)\n"
             "  --threads T        parallel rollouts and training replicas (default 2)\n"
-            "  planner options of the rollouts as for `eval --method madbp` (--guidance W, --candidates K, ...)\n");
+            "  planner options of the rollouts as for `eval --method madbp` (--preset, --set GROUP.NAME=VALUE, ...)\n");
         return 0;
     }
-    PlannerOptions o = read_planner_options(a);
+    const PlannerChoice o = read_planner_choice(a);
     std::string data = a.str("--data", "demos.bin");
     madbp::DaggerConfig c;
     c.train.out = a.str("--out", "dagger.safetensors");
@@ -497,9 +362,8 @@ inline int cmd_dagger(Args& a) {
                         r.train_episodes, r.seconds);
         std::fflush(stdout);
     };
-    const MethodSetup setup;
     madbp::dagger(base, model, c, [&](const madbp::MadbpModel& m) {
-        return planner_factory(std::make_shared<const madbp::MadbpModel>(m.clone()), o, setup);
+        return planner_factory(std::make_shared<const madbp::MadbpModel>(m.clone()), o);
     });
     std::printf("dagger: %d rounds -> %s (log %s.dagger.csv)\n", c.rounds, c.train.out.c_str(), c.train.out.c_str());
     return 0;
