@@ -23,11 +23,12 @@
 // Configuration macros: none beyond madbp.hpp's.
 //
 // Changelog
-//   0.2  TrainState: one resumable-state scaffold with run identity for train, train_mappo and
-//        train_madiff; Curve records (the tool draws the charts); ProgressFn; grad_clip names.
-//        DAgger (dagger, expert_label, dagger_rollouts); make_windows takes only the complete
-//        windows of unsuccessful recordings; for_each_collect_episode; DemoRoutes::first (the
-//        priority keys of ModelConfig::priority_context).
+//   0.2  TrainState: one resumable scaffold, with run identity, for train, MAPPO and MADiff.
+//        Curve records (the tool draws the charts); ProgressFn; grad_clip names.
+//        DAgger: dagger, expert_label, dagger_rollouts.
+//        make_windows takes only the complete windows of unsuccessful recordings.
+//        for_each_collect_episode.
+//        DemoRoutes::first: the priority keys of ModelConfig::priority_context.
 //   0.1  demonstrations, datasets, losses, training, MAPPO, MADiff.
 //
 // Contents (SPEC sections of docs/design.md in brackets)
