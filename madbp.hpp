@@ -145,7 +145,9 @@
 
 namespace madbp {
 
-// ===== Neural-network core =====
+// =============================================================================================
+// Section 1. Neural-network core (SPEC 4)
+// =============================================================================================
 
 using Mat = Eigen::MatrixXf;
 using Vec = Eigen::VectorXf;
@@ -1090,8 +1092,9 @@ struct Ema {
     }
 };
 
-// ===== Checkpoints (safetensors) =====
-//
+// =============================================================================================
+// Section 2. Checkpoints: safetensors (SPEC 11)
+// =============================================================================================
 // File layout (huggingface safetensors): u64 little-endian N; N bytes of UTF-8 JSON
 // {"__metadata__": {"key": "value", ...}, "name": {"dtype": "F32", "shape": [..],
 // "data_offsets": [begin, end]}, ...}, padded with spaces so the payload starts 8-aligned;
@@ -1714,12 +1717,10 @@ inline void load_params(const std::string& path, ParamStore& ps) { read_param_te
 
 }  // namespace madbp
 
-// ===== MA-DBP model, diffusion and planner =====
-
 namespace madbp {
 
 // =============================================================================================
-// MA-DBP model (SPEC 5): axial attention processor, context encoder, FiLM U-Net
+// Section 3. Model inputs (SPEC 5): ModelConfig, SceneBatch, the world-to-model encoding
 // =============================================================================================
 // Shapes: B scenes, n agent slots per scene (padded; inactive slots masked), A = B*n agent
 // columns, H window length, D embedding width, d = 2 (positions), P = (G/8)^2 image tokens.
@@ -2058,7 +2059,9 @@ inline void time_to_agent_major(const Mat& y, int B, int n, int H, Mat& x) {
 }
 }  // namespace detail
 
-// ---------------------------------------------------------------------------------------------
+// =============================================================================================
+// Section 4. Model parts (SPEC 5)
+// =============================================================================================
 // Model parts: each is a small struct with forward/backward over the model's layouts, built
 // into a caller's ParamStore. MadbpModel composes ContextEncoder, StepEmbedding,
 // TrajectoryProcessor and FilmUNet; MADiff (madbp_train.hpp) uses StepEmbedding and FilmUNet
@@ -2538,7 +2541,9 @@ struct TrajectoryProcessor {
     }
 };
 
-// ---------------------------------------------------------------------------------------------
+// =============================================================================================
+// Section 5. The model (SPEC 5, 11): MadbpModel, save_model, load_model
+// =============================================================================================
 // The denoiser eps_theta(X^k, k, c) (or x0_theta with Prediction::X0): ContextEncoder ->
 // ctx (D, A); cond = Mish(ctx + StepEmbedding(k)) (D, A); TrajectoryProcessor -> FilmUNet
 // conditioned on cond. Not copyable (layers point into its ParamStore); movable; clone() copies.

@@ -149,6 +149,7 @@ inline std::string number_text(double v) {
 //   2 maps: make_map("empty" | "obstacles" | "barrier")                          [2]
 //   3 the world: WorldConfig, Agent, Metrics, World (add/remove agents, step)    [2]
 //   4 spawning: spawn_agents, make_random_world, WorldBatch                      [2]
+//   4b interaction scenes: interaction_scenarios, make_interaction_world      (issue 12)
 //   5 occupancy grid: Grid, occupancy_grid, local_crop                           [2, 5]
 //   6 scene files: Scene, parse_scene, load_scene, scene_text, make_world        [2]
 //   7 controllers: Policy, StepModel                                             [3]
