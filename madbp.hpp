@@ -83,41 +83,26 @@
 //     DecentralisedTeam                                                                [8]
 //
 // Changelog
-//   0.2  one FilmUNet / ContextEncoder / TrajectoryProcessor; one world-to-model encoder;
+//   0.2  One FilmUNet, ContextEncoder and TrajectoryProcessor; one world-to-model encoder.
 //        BatchNorm statistics in ParamStore::state; optimizer-state I/O moved to madbp_train.hpp.
-//        The Local scene frame, route subgoals and ModelConfig::n_train_max (new metadata, absent
-//        = the 0.1 behaviour); automatic neighbourhoods, plan_robot; the planner samples with
-//        guidance kDefaultGuidance. ModelConfig::velocity_context and priority_context (options;
-//        off in shipped models; priority_values, Neighbour::id). SamplerConfig::keep_right: the
-//        guidance also turns robots that meet to the right of their relative motion, so they
-//        pass instead of stopping nose to nose; the planner samples with kDefaultKeepRight.
-//        SamplerConfig::validate: every sampler option is checked on either sampling path (a
-//        bad x0_clip, goal_reach or keep_right was ignored or undefined on the plain one).
-//        DiffusionPlanner::take_turns (default on): robots meeting head-on in a one-lane corridor
-//        take turns (PassageControl); a robot that waits is given its waiting point as its goal,
-//        one that goes around a corridor with a short way around its detour's route subgoal
-//        (route_goal takes ClosedCells). last_waiting, last_wait_points. SamplerConfig::end_bend:
-//        a window that heads for a goal within reach but stops short is bent to arrive; the
-//        planner samples with kDefaultEndBend. SamplerConfig::warm_start: a plan runs the last W
-//        DDIM steps from each robot's last window shifted to now (sample_windows' `warm`), and
-//        the planner keeps its last windows by id; it samples with kDefaultWarmStart.
+//        The Local scene frame, route subgoals, ModelConfig::n_train_max (absent = as in 0.1).
+//        Automatic neighbourhoods; plan_robot, one robot planning for itself.
+//        The planner samples with guidance (kDefaultGuidance).
+//        ModelConfig::velocity_context and priority_context: options, off in shipped models.
+//        priority_values; Neighbour::id.
+//        SamplerConfig::keep_right: robots that meet pass each other on the right.
+//        SamplerConfig::validate checks every option on either sampling path (some were ignored).
+//        DiffusionPlanner::take_turns: robots take turns in one-lane corridors, or go around.
+//        route_goal takes ClosedCells; last_waiting, last_wait_points.
+//        SamplerConfig::end_bend: a window that stops short of a goal within reach is bent to it.
+//        SamplerConfig::warm_start: a plan starts from each robot's last window, shifted to now.
 //        plan_robot takes the robot's clock (`step`) and warm-starts from its own last windows.
-//        DiffusionPlanner::passage_replan (kDefaultPassageReplan): while robots may meet in a
-//        one-lane passage, a plan asks to be replaced after 4 steps (Plan::replan_after).
-//        kDefaultKeepRight 500 (was 300), with the follower's lookahead 2.0: faster at the same
-//        success. DiffusionPlanner::line_start (kDefaultLineStart, on): a robot without a last
-//        window (a first plan, a robot that joined, a neighbour without an id) warm-starts from a
-//        straight line toward its route goal, so a first plan costs what a warm one does.
-//        The planner samples with kDefaultSampleSteps 8 (planner_sample_steps; the model's own S
-//        where that is fewer) and kDefaultWarmStart 4 (was 5 of the model's 10): a plan runs 4
-//        network passes instead of 5, from the same noise level.
-//        MapFields' goal fields (the guidance's distance to a goal around obstacles) are made
-//        with a bucket queue (Dial's algorithm) instead of a binary heap (the same distances to
-//        the bit, 4-5x faster), on every other node of the clearance field (MapFields::goal_grid,
-//        kGoalStride): a goal field costs 0.1 ms instead of 1.7-2.5 in the standard world.
-//        DiffusionPlanner::small_plan_candidates (kDefaultSmallPlanCandidates 2): a plan of at
-//        most kSmallPlanWindows = 4 robot windows keeps the best of 2 windows per scene
-//        (last_plan_candidates); larger plans draw sampler.candidates as before.
+//        DiffusionPlanner::passage_replan: replan after 4 steps while robots may meet in a passage.
+//        kDefaultKeepRight 500 (was 300), with the follower's lookahead 2.0.
+//        DiffusionPlanner::line_start: a robot without a last window warm-starts from a line.
+//        kDefaultSampleSteps 8, kDefaultWarmStart 4 (was 5 of 10): 4 network passes a plan.
+//        MapFields' goal fields: a bucket queue on every other node (kGoalStride), 0.1 ms each.
+//        DiffusionPlanner::small_plan_candidates: best of 2 windows for plans of <= 4 windows.
 //   0.1  neural-network core, safetensors checkpoints, MA-DBP model, DDIM sampler, planner.
 
 #ifndef MADBP_HPP
@@ -170,7 +155,9 @@
 
 namespace madbp {
 
-// ===== Neural-network core =====
+// =============================================================================================
+// Section 1. Neural-network core (SPEC 4)
+// =============================================================================================
 
 using Mat = Eigen::MatrixXf;
 using Vec = Eigen::VectorXf;
@@ -1115,8 +1102,9 @@ struct Ema {
     }
 };
 
-// ===== Checkpoints (safetensors) =====
-//
+// =============================================================================================
+// Section 2. Checkpoints: safetensors (SPEC 11)
+// =============================================================================================
 // File layout (huggingface safetensors): u64 little-endian N; N bytes of UTF-8 JSON
 // {"__metadata__": {"key": "value", ...}, "name": {"dtype": "F32", "shape": [..],
 // "data_offsets": [begin, end]}, ...}, padded with spaces so the payload starts 8-aligned;
@@ -1739,12 +1727,10 @@ inline void load_params(const std::string& path, ParamStore& ps) { read_param_te
 
 }  // namespace madbp
 
-// ===== MA-DBP model, diffusion and planner =====
-
 namespace madbp {
 
 // =============================================================================================
-// MA-DBP model (SPEC 5): axial attention processor, context encoder, FiLM U-Net
+// Section 3. Model inputs (SPEC 5): ModelConfig, SceneBatch, the world-to-model encoding
 // =============================================================================================
 // Shapes: B scenes, n agent slots per scene (padded; inactive slots masked), A = B*n agent
 // columns, H window length, D embedding width, d = 2 (positions), P = (G/8)^2 image tokens.
@@ -2083,7 +2069,9 @@ inline void time_to_agent_major(const Mat& y, int B, int n, int H, Mat& x) {
 }
 }  // namespace detail
 
-// ---------------------------------------------------------------------------------------------
+// =============================================================================================
+// Section 4. Model parts (SPEC 5)
+// =============================================================================================
 // Model parts: each is a small struct with forward/backward over the model's layouts, built
 // into a caller's ParamStore. MadbpModel composes ContextEncoder, StepEmbedding,
 // TrajectoryProcessor and FilmUNet; MADiff (madbp_train.hpp) uses StepEmbedding and FilmUNet
@@ -2563,7 +2551,9 @@ struct TrajectoryProcessor {
     }
 };
 
-// ---------------------------------------------------------------------------------------------
+// =============================================================================================
+// Section 5. The model (SPEC 5, 11): MadbpModel, save_model, load_model
+// =============================================================================================
 // The denoiser eps_theta(X^k, k, c) (or x0_theta with Prediction::X0): ContextEncoder ->
 // ctx (D, A); cond = Mish(ctx + StepEmbedding(k)) (D, A); TrajectoryProcessor -> FilmUNet
 // conditioned on cond. Not copyable (layers point into its ParamStore); movable; clone() copies.

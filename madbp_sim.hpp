@@ -18,28 +18,22 @@
 //   MADBP_ASSERT(cond)   programmer-error check; default: assert(cond).
 //
 // Changelog
-//   0.2  ProgressFn instead of printing; Policy::decision_ms; Map is now WorldMap (no clash with
-//        Eigen::Map), with operator==; local_crop here. PlanFollower weighs robots in its safety
-//        filter as the guided expert does (FollowerConfig::priority_weight = 4; 1 = the 0.1 filter).
+//   0.2  ProgressFn instead of printing; Policy::decision_ms.
+//        Map is now WorldMap (no clash with Eigen::Map), with operator==; local_crop moved here.
+//        PlanFollower's filter weighs robots as the expert does (FollowerConfig::priority_weight).
 //        priority_order over any n robots; RouteGuide::route_steps (the expert's priority key).
-//        PlanFollower's tracker aims FollowerConfig::lookahead = 2.0 steps ahead of the plan
-//        (0 = the 0.1 follower), which makes up the lag a robot builds behind a moving plan.
-//        PassageControl: robots take turns through one-lane corridors (who waits, and where);
-//        at one with a short way around, the robot that would wait goes around it
-//        (PassageParams::go_around; RouteGuide routes that keep out of ClosedCells).
-//        RouteGuide::route_cells, RouteGuide::grid(map). PlanFollower's filter is follower_filter()
-//        (barrier rate 4/s; the expert and SafetyFilterParams{} keep 2.5); safety_filter refuses a
-//        rate outside (0, 1/dt), where its barrier would not hold. PlanFollower also replans once
-//        a robot is FollowerConfig::replan_error = 0.15 off its plan, after half the interval
-//        (0 = the 0.1 follower). PassageControl keys one-lane cells by the obstacles on
-//        either side (detail::surface_groups), so narrow gaps around a corridor's ends no longer
-//        hide it. Robots going around a corridor take its two sides in turn (PassageParams::spread);
-//        RouteGuide::walk_steps.
+//        FollowerConfig::lookahead: the tracker aims ahead of the plan (0 = the 0.1 follower).
+//        PassageControl: robots take turns through one-lane corridors (who waits, and where).
+//        PassageParams::go_around: at a corridor with a short way around, the waiter goes round.
+//        RouteGuide keeps out of ClosedCells; RouteGuide::route_cells, grid(map), walk_steps.
+//        follower_filter(): the follower's barrier rate 4/s (expert, SafetyFilterParams{}: 2.5).
+//        safety_filter refuses a rate outside (0, 1/dt), where its barrier would not hold.
+//        FollowerConfig::replan_error 0.15: replan when a robot is off its plan (after m/2 steps).
+//        PassageControl keys one-lane cells by the obstacles either side: gaps no longer hide them.
+//        PassageParams::spread: robots going around a corridor take its two sides in turn.
 //        Plan::replan_after: a planner may ask PlanFollower for its next plan sooner.
-//        PassageParams::spare (was a fixed 0.25; now 0) and wait_back 0.45 (was 0.3): the waiting
-//        stand farther out and go sooner; PassageControl::contested.
-//        PassageParams::one_lane_width 0.47 (was 0.54): two robots pass side by side in corridors
-//        0.46 wide and more, which is faster and fails less than taking turns there.
+//        PassageParams::spare 0 (was 0.25), wait_back 0.45 (was 0.3); PassageControl::contested.
+//        PassageParams::one_lane_width 0.47 (was 0.54): robots pass side by side where two fit.
 //        FollowerConfig::lookahead 2.0 (was 1.5), with the planner's keep-right 500.
 //   0.1  world, maps, controllers.
 
@@ -155,6 +149,7 @@ inline std::string number_text(double v) {
 //   2 maps: make_map("empty" | "obstacles" | "barrier")                          [2]
 //   3 the world: WorldConfig, Agent, Metrics, World (add/remove agents, step)    [2]
 //   4 spawning: spawn_agents, make_random_world, WorldBatch                      [2]
+//   4b interaction scenes: interaction_scenarios, make_interaction_world      (issue 12)
 //   5 occupancy grid: Grid, occupancy_grid, local_crop                           [2, 5]
 //   6 scene files: Scene, parse_scene, load_scene, scene_text, make_world        [2]
 //   7 controllers: Policy, StepModel                                             [3]

@@ -23,11 +23,12 @@
 // Configuration macros: none beyond madbp.hpp's.
 //
 // Changelog
-//   0.2  TrainState: one resumable-state scaffold with run identity for train, train_mappo and
-//        train_madiff; Curve records (the tool draws the charts); ProgressFn; grad_clip names.
-//        DAgger (dagger, expert_label, dagger_rollouts); make_windows takes only the complete
-//        windows of unsuccessful recordings; for_each_collect_episode; DemoRoutes::first (the
-//        priority keys of ModelConfig::priority_context).
+//   0.2  TrainState: one resumable scaffold, with run identity, for train, MAPPO and MADiff.
+//        Curve records (the tool draws the charts); ProgressFn; grad_clip names.
+//        DAgger: dagger, expert_label, dagger_rollouts.
+//        make_windows takes only the complete windows of unsuccessful recordings.
+//        for_each_collect_episode.
+//        DemoRoutes::first: the priority keys of ModelConfig::priority_context.
 //   0.1  demonstrations, datasets, losses, training, MAPPO, MADiff.
 //
 // Contents (SPEC sections of docs/design.md in brackets)
@@ -63,7 +64,7 @@
 namespace madbp {
 
 // =============================================================================================
-// Demonstrations (SPEC 7)
+// Section 1. Demonstrations (SPEC 7)
 // =============================================================================================
 
 // One recorded episode of a fixed team. Frame t = 0 is the start; frame t holds the state
@@ -200,7 +201,9 @@ inline DemoSet collect_demonstrations(const CollectConfig& c, const Demonstrator
     return set;
 }
 
-// ---------------------------------------------------------------------------------------------
+// =============================================================================================
+// Section 2. Datasets (SPEC 11)
+// =============================================================================================
 // Dataset file (little-endian binary; documented in docs/formats.md):
 //   "MADBPDS1", u32 version = 1, string demonstrator, u32 episode count, then per episode:
 //   string map_name, f64 half_size, u32 discs + discs * (f64 cx, cy, r),
@@ -412,7 +415,7 @@ inline DemoSet load_demos(const std::string& path) {
 }
 
 // =============================================================================================
-// Losses (SPEC 7, paper eqs. 3-8)
+// Section 3. Losses (SPEC 7, paper eqs. 3-8)
 // =============================================================================================
 // x0_hat is (2, H*A) in normalised units, columns a*H + t. Every auxiliary loss returns its
 // value and ADDS weight * dL/dx0_hat into grad. scene_weight (B) scales each scene's terms
@@ -532,7 +535,7 @@ inline double collision_loss(const Mat& x0_hat, const Mat& origin, const std::ve
 }
 
 // =============================================================================================
-// Training batches: windows, curriculum, augmentation
+// Section 4. Training batches: windows, curriculum, augmentation
 // =============================================================================================
 
 struct TrainConfig {
@@ -703,7 +706,7 @@ inline std::vector<WindowRef> make_windows(const DemoSet& demos, const std::vect
 }
 
 // =============================================================================================
-// One loss evaluation: noise the batch, run the model, combine the four terms (SPEC 7)
+// Section 5. The loss: noise the batch, run the model, combine the four terms (SPEC 7)
 // =============================================================================================
 
 struct LossTerms {
@@ -791,7 +794,7 @@ inline LossTerms diffusion_loss(MadbpModel& model, const NoiseSchedule& schedule
 }
 
 // =============================================================================================
-// Training scaffold: optimizer state, run identity, resumable state files, loss curves
+// Section 6. Training scaffold: optimizer state, run identity, resumable state files, loss curves
 // =============================================================================================
 // One piece for train, train_mappo and train_madiff. A run writes <out> (the model, by the
 // trainer), <out>.train (what --resume reads: weights, state, Adam, EMA, RNG streams and the
@@ -1005,7 +1008,7 @@ private:
 };
 
 // =============================================================================================
-// Training loop (paper Alg. 1)
+// Section 7. Training loop (paper Alg. 1)
 // =============================================================================================
 
 struct TrainReport {
@@ -1205,7 +1208,7 @@ inline TrainReport train(const DemoSet& demos, MadbpModel& model, const TrainCon
 }
 
 // =============================================================================================
-// DAgger: on-policy data aggregation (issue 12)
+// Section 7b. DAgger: on-policy data aggregation (issue 12)
 // =============================================================================================
 // The learner drives, the expert labels. Expert demonstrations only show states the expert
 // visits; a learned planner drifts into others (two robots nose to nose, neither yielding)
@@ -1419,14 +1422,13 @@ inline std::vector<DaggerRound> dagger(const DemoSet& base, MadbpModel& model, c
 }  // namespace madbp
 
 // =============================================================================================
-// MAPPO (SPEC 3.3): the paper's demonstrator and baseline
+// Section 8. MAPPO (SPEC 3.3): the paper's demonstrator and baseline
 // =============================================================================================
 
 namespace madbp {
 
-// =============================================================================================
+// ---------------------------------------------------------------------------------------------
 // MAPPO observations (SPEC 3.3; VMAS navigation)
-// =============================================================================================
 
 // Per agent, 18 numbers in this order (VMAS navigation's layout, lidar extended to the map):
 //   [0, 2)   position p (x, y)
@@ -1540,9 +1542,8 @@ inline void mappo_critic_input(const Mat& obs, long col, int n, Mat& critic, lon
     }
 }
 
-// =============================================================================================
+// ---------------------------------------------------------------------------------------------
 // MAPPO networks (SPEC 3.3)
-// =============================================================================================
 
 // x (in, N) -> Linear -> Tanh -> Linear -> Tanh -> Linear -> y (out, N). Keeps the
 // activations of its last forward for backward.
@@ -1615,9 +1616,8 @@ public:
     }
 };
 
-// =============================================================================================
+// ---------------------------------------------------------------------------------------------
 // Gaussian policy and the PPO objective (SPEC 3.3)
-// =============================================================================================
 
 // Diagonal Gaussian over the 2 force components. log N(a; mu, sigma) =
 // sum_k -(a_k - mu_k)^2 / (2 sigma_k^2) - log sigma_k - log(2 pi) / 2. The gradients are
@@ -1730,9 +1730,8 @@ inline PpoTerms ppo_loss(MappoNet& net, const PpoBatch& b, const PpoCoefficients
     return terms;
 }
 
-// =============================================================================================
+// ---------------------------------------------------------------------------------------------
 // MAPPO training (SPEC 3.3)
-// =============================================================================================
 
 // Rewards per agent and step (VMAS navigation's terms; our constants):
 //   shaping * (distance to goal before the step - after it)     VMAS pos_shaping_factor 1
@@ -2036,9 +2035,8 @@ inline MappoReport train_mappo(const MappoConfig& c, MappoNet* result = nullptr)
     return rep;
 }
 
-// =============================================================================================
+// ---------------------------------------------------------------------------------------------
 // Running a trained policy (SPEC 3.3, 9)
-// =============================================================================================
 
 // Drives a team with the actor's mean action (deterministic, no safety filter: MAPPO runs raw,
 // as in the paper), clipped to the action box. The team must have exactly the policy's n
@@ -2117,7 +2115,7 @@ inline DemonstratorFactory mappo_demonstrator(const std::string& path) {
 }  // namespace madbp
 
 // =============================================================================================
-// MADiff (SPEC 3.4): a return-conditioned diffusion baseline over observation sequences
+// Section 9. MADiff (SPEC 3.4): a return-conditioned diffusion baseline over observation sequences
 // =============================================================================================
 //
 // After zbzhu99/madiff (Zhu et al., "MADiff", 2023), written from its description on the NN
