@@ -52,7 +52,7 @@ inline void read_cost_weights(const std::string& s, madbp::WindowCost& w) {
 }
 inline PlannerOptions read_planner_options(Args& a) {
     PlannerOptions o;
-    o.model_path = a.str("--model", kDefaultModel);
+    o.model_path = model_option(a);
     o.sample_steps = (int)a.integer("--sample-steps", 0, 0, 1000);
     o.goal_inpaint = !a.flag("--no-goal-inpaint");
     o.goal_reach = a.real("--goal-reach", -1, 0, 100);  // a negative value is an error, not the default
@@ -184,7 +184,7 @@ inline MethodSpec madbp_method(const PlannerOptions& o, const MethodSetup& s) {
 inline void register_nn_methods(std::vector<Method>& m) {
     m.push_back({"madbp",
                  "MA-DBP diffusion planner + tracker (+ safety filter) (SPEC 5-8); --model FILE\n"
-                 "                    (default models/madbp-default.safetensors), --sample-steps S (DDIM\n"
+                 "                    (default: the shipped model, see madbp --help), --sample-steps S (DDIM\n"
                  "                    steps; default 8, or the model's own if fewer),\n"
                  "                    --no-goal-inpaint, --goal-reach R (world units; default 0.55),\n"
                  "                    --neighbours K (each robot plans with its K-1 nearest; 0 = whole team;\n"
@@ -436,7 +436,7 @@ inline int cmd_dagger(Args& a) {
             "madbp dagger - on-policy data aggregation (issue 12): roll the model out, label the states it\n"
             "               visits with what the guided expert does from them, fine-tune on the labels\n"
             "               of every round so far plus as many expert windows; repeat\n"
-            "  --model FILE       the model to start from (default models/madbp-default.safetensors)\n"
+            "  --model FILE       the model to start from (default: the shipped model, see madbp --help)\n"
             "  --data FILE        the expert demonstrations it was trained on (default demos.bin)\n"
             "  --out FILE         final model (default dagger.safetensors); round R writes FILE.round-R.labels.bin\n"
             "                     and FILE.round-R.safetensors (+ .train, .csv); the log is FILE.dagger.csv\n"
