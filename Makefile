@@ -188,8 +188,8 @@ clean:
 # --- Packaging (docs/packaging.md) -------------------------------------------------------------
 .PHONY: test-consumer aarch64 test-aarch64
 
-# Installs with CMake into a temporary prefix and builds/runs the find_package, pkg-config and
-# FetchContent consumers; checks the Python readers against C++ and the Slurm shard merge on a
+# Installs with CMake (the tool too) into a temporary prefix, runs the installed tool from
+# elsewhere, and builds/runs the find_package, pkg-config and FetchContent consumers; checks the Python readers against C++ and the Slurm shard merge on a
 # tiny suite. The last line is "N passed, N failed".
 test-consumer: $(BUILD)/madbp
 	tests/consumer/check.sh

@@ -22,9 +22,13 @@
 // Use: plan with a trained model (SPEC 8)
 //   #include "madbp.hpp"
 //   madbp::World world = madbp::make_random_world("barrier", 4, /*seed=*/0);
-//   madbp::DiffusionPlanner planner(madbp::load_model("models/madbp-default.safetensors"));
+//   madbp::DiffusionPlanner planner(madbp::load_model(madbp::default_model_path()));
 //   madbp::PlanFollower follower = madbp::make_follower(planner);
 //   while (!world.done()) world.step(follower.act(world));   // replans every 8 steps
+// default_model_path() finds the shipped model madbp-default.safetensors: $MADBP_MODEL if set
+// (the file itself; missing is an error), else the first that exists of <executable>/../share/
+// madbp/models (an install, also moved), MADBP_MODEL_DIR (macro set by the CMake package and
+// madbp.pc), <this header>/../share/madbp/models, ./models, <this header>/models (a checkout).
 // Every setting a plan uses is in planner.settings (PlannerConfig: neighbourhood, sampler,
 // guidance, traffic, follower; Section 7), tuned by default; PlannerConfig::paper() is the
 // paper's planner, and planner_settings() lists every setting with its range and meaning:
@@ -73,7 +77,8 @@
 //     route_goal, encode_agent, priority_values, end_pinned                             [5]
 //   4 model parts: ConvBlock, AgentAttention, FilmUNet, StepEmbedding, ContextEncoder,
 //     TrajectoryProcessor                                                              [5]
-//   5 the model: MadbpModel, save_model, load_model                                      [5, 11]
+//   5 the model: MadbpModel, save_model, load_model, default_model_path (the shipped model:
+//     $MADBP_MODEL, the install, the checkout)                                         [5, 11]
 //   6 diffusion: NoiseSchedule, DistanceField, MapFields, WindowCost, SamplerConfig,
 //     sample_windows (DDIM with inpainting, guidance, best-of-k, keep-right, end bend, warm start) [6]
 //   7 planner settings: TrafficConfig, PlannerConfig (tuned(), paper(), validate, set),
@@ -83,6 +88,13 @@
 //     DecentralisedTeam                                                                [8]
 //
 // Changelog
+//   0.3  PlannerConfig: every planner setting in one struct (neighbourhood, sampler, guidance,
+//        traffic, follower), defaults written once; tuned() (the default) and paper() presets;
+//        planner_settings(), the table behind validate(), set() and the tool's --set.
+//        DiffusionPlanner::settings replaces its public fields and `sampler` (now sampler());
+//        the kDefault* constants and planner_sample_steps are gone (their values: PlannerConfig).
+//        PassageControl moves here from madbp_sim.hpp (Section 8); PassageParams is TrafficConfig.
+//        make_follower; DecentralisedTeam (from the tool). default_model_path.
 //   0.2  One FilmUNet, ContextEncoder and TrajectoryProcessor; one world-to-model encoder.
 //        BatchNorm statistics in ParamStore::state; optimizer-state I/O moved to madbp_train.hpp.
 //        The Local scene frame, route subgoals, ModelConfig::n_train_max (absent = as in 0.1).
@@ -120,8 +132,8 @@
 #pragma GCC diagnostic ignored "-Wuninitialized"
 #endif
 #include "madbp_sim.hpp"
-#if MADBP_VERSION_MAJOR != 0 || MADBP_VERSION_MINOR != 2
-#error "madbp.hpp is release 0.2; the madbp_sim.hpp it includes is another release"
+#if MADBP_VERSION_MAJOR != 0 || MADBP_VERSION_MINOR != 3
+#error "madbp.hpp is release 0.3; the madbp_sim.hpp it includes is another release"
 #endif
 
 #include <Eigen/Dense>
@@ -135,6 +147,7 @@
 #include <cmath>
 #include <cstdint>
 #include <cstdio>
+#include <cstdlib>
 #include <cstring>
 #include <fcntl.h>
 #include <limits>
@@ -2687,6 +2700,77 @@ inline MadbpModel load_model(const std::string& path) {
     read_param_tensors(st, *model.params);
     model.set_training(false);
     return model;
+}
+
+// The shipped default model, madbp-default.safetensors, wherever madbp was installed or checked
+// out: the one lookup behind the tool's --model default (other front ends, e.g. Python, should
+// follow the same order). The first existing file of, in order:
+//   1 $MADBP_MODEL (set and non-empty): the model file itself; a missing file is an error rather
+//     than a fall-through, so that a typo does not silently plan with another model
+//   2 <dir of the running executable>/../share/madbp/models (Linux /proc/self/exe): an installed
+//     or relocated tool uses the model installed beside it, not the tree it was built from;
+//     then MADBP_MODEL_DIR (compile-time macro; the CMake target and madbp.pc define it), then
+//     <dir of this header>/../share/madbp/models (installed headers; the header's path is known
+//     only when it was included by an absolute path, as CMake does)
+//   3 the checkout: ./models, then <dir of this header>/models
+// Throws std::runtime_error naming every place tried when none exists. Prints nothing.
+namespace detail {
+constexpr const char* kDefaultModelFile = "madbp-default.safetensors";
+inline bool is_regular_file(const std::string& path) {
+    struct stat sb;
+    return ::stat(path.c_str(), &sb) == 0 && S_ISREG(sb.st_mode);
+}
+// "" for a path without a directory part.
+inline std::string dir_of(const std::string& path) {
+    const size_t slash = path.find_last_of('/');
+    return slash == std::string::npos ? "" : slash == 0 ? "/" : path.substr(0, slash);
+}
+// The running program's directory; "" where the platform does not say (no /proc).
+inline std::string executable_dir() {
+#ifdef __linux__
+    char buf[PATH_MAX];
+    const ssize_t n = ::readlink("/proc/self/exe", buf, sizeof buf - 1);
+    if (n > 0) return dir_of(std::string(buf, (size_t)n));
+#endif
+    return "";
+}
+// For messages: a relative path with the current directory in front.
+inline std::string absolute_for_message(const std::string& path) {
+    char cwd[PATH_MAX];
+    return !path.empty() && path[0] != '/' && ::getcwd(cwd, sizeof cwd) ? std::string(cwd) + "/" + path : path;
+}
+// Model directories of steps 2 and 3 of default_model_path, in order.
+inline std::vector<std::string> default_model_dirs() {
+    std::vector<std::string> dirs;
+    const std::string exe = executable_dir();
+    if (!exe.empty()) dirs.push_back(exe + "/../share/madbp/models");
+#ifdef MADBP_MODEL_DIR
+    dirs.push_back(MADBP_MODEL_DIR);
+#endif
+    // A relative __FILE__ is relative to the compiler's directory, not the program's: skipped.
+    const std::string header_dir = __FILE__[0] == '/' ? dir_of(__FILE__) : "";
+    if (!header_dir.empty()) dirs.push_back(header_dir + "/../share/madbp/models");
+    dirs.push_back("models");
+    if (!header_dir.empty()) dirs.push_back(header_dir + "/models");
+    return dirs;
+}
+}  // namespace detail
+
+inline std::string default_model_path() {
+    const char* env = std::getenv("MADBP_MODEL");
+    if (env && *env) {
+        if (!detail::is_regular_file(env))
+            throw std::runtime_error(std::string("MADBP_MODEL=") + env + ": no such model file (MADBP_MODEL names the file itself; unset it for the shipped model)");
+        return env;
+    }
+    std::string tried;
+    for (const std::string& dir : detail::default_model_dirs()) {
+        const std::string path = dir + "/" + detail::kDefaultModelFile;
+        if (detail::is_regular_file(path)) return path;
+        tried += (tried.empty() ? "" : ", ") + detail::absolute_for_message(path);
+    }
+    throw std::runtime_error(std::string("default model: ") + detail::kDefaultModelFile + " not found (MADBP_MODEL not set; tried " + tried +
+                             "); set MADBP_MODEL to the model file, or pass its path (madbp: --model FILE)");
 }
 
 // =============================================================================================

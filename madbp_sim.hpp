@@ -18,6 +18,7 @@
 //   MADBP_ASSERT(cond)   programmer-error check; default: assert(cond).
 //
 // Changelog
+//   0.3  PassageControl and its parameters move to madbp.hpp (the planner's traffic conventions).
 //   0.2  ProgressFn instead of printing; Policy::decision_ms.
 //        Map is now WorldMap (no clash with Eigen::Map), with operator==; local_crop moved here.
 //        PlanFollower's filter weighs robots as the expert does (FollowerConfig::priority_weight).
@@ -42,7 +43,7 @@
 
 // The release of the three headers; madbp.hpp and madbp_train.hpp check that they come from it.
 #define MADBP_VERSION_MAJOR 0
-#define MADBP_VERSION_MINOR 2
+#define MADBP_VERSION_MINOR 3
 #define MADBP_VERSION_PATCH 0
 
 #ifndef MADBP_ASSERT

@@ -51,8 +51,8 @@
 #define MADBP_TRAIN_HPP
 
 #include "madbp.hpp"
-#if MADBP_VERSION_MAJOR != 0 || MADBP_VERSION_MINOR != 2
-#error "madbp_train.hpp is release 0.2; the madbp.hpp it includes is another release"
+#if MADBP_VERSION_MAJOR != 0 || MADBP_VERSION_MINOR != 3
+#error "madbp_train.hpp is release 0.3; the madbp.hpp it includes is another release"
 #endif
 
 #include <array>

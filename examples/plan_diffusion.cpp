@@ -1,17 +1,17 @@
 // plan_diffusion.cpp - plan a scene with the shipped MA-DBP diffusion model, print the result,
 // draw it. The loop a simulator or robot runs: plan a window, follow it, replan every 8 steps.
-//   build/plan_diffusion [examples/swap4.scene] [models/madbp-default.safetensors] [out.svg]
+//   build/plan_diffusion [examples/swap4.scene] [MODEL (default: madbp::default_model_path())] [out.svg]
 #include <cstdio>
 
 #include "madbp.hpp"
 
 int main(int argc, char** argv) {
     const char* scene = argc > 1 ? argv[1] : "examples/swap4.scene";
-    const char* model = argc > 2 ? argv[2] : "models/madbp-default.safetensors";
     const char* out = argc > 3 ? argv[3] : "plan_diffusion.svg";
     try {
         madbp::set_num_threads(1);                                        // plans on one core
         madbp::World world = madbp::make_world(madbp::load_scene(scene));  // map + robots
+        const std::string model = argc > 2 ? argv[2] : madbp::default_model_path();  // $MADBP_MODEL, the install, ./models
         madbp::DiffusionPlanner planner(madbp::load_model(model), /*seed=*/0);
         // The tracker and safety filter follow each window; a new one every 8 steps.
         madbp::PlanFollower follower([&](const madbp::World& w) { return planner.plan(w); });

@@ -239,7 +239,7 @@ int cmd_demo(Args& a) {
         std::printf(
             "madbp demo - the shipped MA-DBP model plans for 4 robots on a barrier map; writes SVG\n"
             "  --seed S       episode seed (default 0)\n"
-            "  --model FILE   model (default models/madbp-default.safetensors)\n"
+            "  --model FILE   model (default: the shipped model, see madbp --help)\n"
             "  --method M     another method instead, e.g. expert or line\n"
             "  --out FILE     output (default demo.svg); an animated copy goes to FILE with -anim\n"
             "  --json         print the result as JSON\n");
@@ -337,7 +337,10 @@ void usage(FILE* f) {
     std::fprintf(f, "madbp %d.%d.%d - multi-robot planning with diffusion (see README.md)\n\nusage: madbp <subcommand> [options]\n\n",
                  MADBP_VERSION_MAJOR, MADBP_VERSION_MINOR, MADBP_VERSION_PATCH);
     for (auto& s : subcommands()) std::fprintf(f, "  %-8s %s\n", s.name, s.help);
-    std::fprintf(f, "\nEvery subcommand takes --help, --seed and --json.\n");
+    std::fprintf(f, "\nEvery subcommand takes --help, --seed and --json.\n"
+                    "--model's default, the shipped model madbp-default.safetensors: $MADBP_MODEL (the file) if set, else\n"
+                    "the first found in <this program's directory>/../share/madbp/models, the models directory it was\n"
+                    "built for (MADBP_MODEL_DIR), ./models (madbp.hpp's default_model_path).\n");
 }
 
 }  // namespace

@@ -8,7 +8,7 @@
 #include <memory>
 
 #include "cli_common.hpp"
-#include "madbp_sim.hpp"
+#include "madbp.hpp"
 
 namespace madbp_cli {
 
@@ -19,8 +19,9 @@ struct MethodSetup {
     bool filter = true;   // --no-filter turns the safety filter off
     int replan = 8;       // --replan M: steps executed per plan
 };
-// The shipped MA-DBP model: the default of --model wherever a method or bench plans with MA-DBP.
-inline const char* kDefaultModel = "models/madbp-default.safetensors";
+// --model FILE wherever a method or bench plans with MA-DBP; without it the shipped model,
+// looked up (madbp::default_model_path) only then, so that --model FILE needs no shipped model.
+inline std::string model_option(Args& a) { return a.has("--model") ? a.str("--model", "") : madbp::default_model_path(); }
 
 // What a method gives eval: the per-episode policy and the training team size it reports.
 struct MethodSpec {

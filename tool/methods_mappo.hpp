@@ -160,7 +160,7 @@ inline int cmd_mappo(Args& a) {
     const int bench_steps = (int)a.integer("--bench-steps", 5000, 1, 100000000);
     if (!bench.empty()) {
         const std::vector<long> counts = a.integers("--bench-decision", bench, 1, 64);
-        std::string model = a.str("--model", kDefaultModel);
+        std::string model = model_option(a);
         const int replan = (int)a.integer("--replan", 8, 1, 1000);
         a.finish();
         return bench_decision(counts, c.hidden, bench_steps, c.seed, model == "none" ? "" : model, replan, json);

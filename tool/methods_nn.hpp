@@ -21,7 +21,7 @@ struct PlannerChoice {
 };
 // The planner flags' help, for every subcommand that reads them.
 inline const char* kPlannerFlagsHelp =
-    "--model FILE (default models/madbp-default.safetensors), --preset tuned|paper (default tuned),\n"
+    "--model FILE (default: the shipped model, see madbp --help), --preset tuned|paper (default tuned),\n"
     "                    --neighbours K|auto, --sensing-radius R|auto, --set GROUP.NAME=VALUE (any planner\n"
     "                    setting, repeatable; `madbp eval --list-settings` lists each with its default,\n"
     "                    range and meaning), --decentralised (each robot plans for itself, plan_robot)";
@@ -29,7 +29,7 @@ inline const char* kPlannerFlagsHelp =
 // (eval's --replan and --no-filter) goes in before --set, so an explicit setting wins.
 inline PlannerChoice read_planner_choice(Args& a, const MethodSetup* setup = nullptr) {
     PlannerChoice o;
-    o.model_path = a.str("--model", kDefaultModel);
+    o.model_path = model_option(a);
     const std::string preset = a.str("--preset", "tuned");
     try {
         o.settings = madbp::PlannerConfig::preset(preset);
@@ -301,7 +301,7 @@ inline int cmd_dagger(Args& a) {
             "madbp dagger - on-policy data aggregation (issue 12): roll the model out, label the states it\n"
             "               visits with what the guided expert does from them, fine-tune on the labels\n"
             "               of every round so far plus as many expert windows; repeat\n"
-            "  --model FILE       the model to start from (default models/madbp-default.safetensors)\n"
+            "  --model FILE       the model to start from (default: the shipped model, see madbp --help)\n"
             "  --data FILE        the expert demonstrations it was trained on (default demos.bin)\n"
             "  --out FILE         final model (default dagger.safetensors); round R writes FILE.round-R.labels.bin\n"
             "                     and FILE.round-R.safetensors (+ .train, .csv); the log is FILE.dagger.csv\n"

@@ -2,13 +2,15 @@
 # Packaging checks (docs/packaging.md; `make test-consumer`; .ci/run). Each check prints one line
 # "ok: ..." or "FAILED: ..." (with its log's tail); the last line is "N passed, N failed".
 #   1. install   cmake configure + `cmake --install` into a temporary prefix: headers, model,
-#                CMake config and version files, madbp.pc
-#   2. cmake     tests/consumer/cmake: find_package(madbp CONFIG REQUIRED), builds, plans with the
+#                CMake config and version files, madbp.pc, the tool (built by CMake)
+#   2. tool      the installed bin/madbp runs `demo` from another directory with the installed
+#                model, also after the prefix is moved; MADBP_MODEL overrides it
+#   3. cmake     tests/consumer/cmake: find_package(madbp CONFIG REQUIRED), builds, plans with the
 #                installed model
-#   3. pkgconfig tests/consumer/pkgconfig: the same program from a plain Makefile and madbp.pc
-#   4. fetch     tests/consumer/fetchcontent: FetchContent (add_subdirectory) of this checkout
-#   5. python    examples/python: numpy's Linear layer and dataset reader against the C++ library
-#   6. shards    scripts/slurm-results.sh (as two array tasks) and scripts/merge-results.sh on a
+#   4. pkgconfig tests/consumer/pkgconfig: the same program from a plain Makefile and madbp.pc
+#   5. fetch     tests/consumer/fetchcontent: FetchContent (add_subdirectory) of this checkout
+#   6. python    examples/python: numpy's Linear layer and dataset reader against the C++ library
+#   7. shards    scripts/slurm-results.sh (as two array tasks) and scripts/merge-results.sh on a
 #                tiny suite: the merge runs no cell and reproduces an unsharded run's results
 # Needs build/madbp (make builds it first) and installs cmake, pkg-config and python3-numpy
 # through apt when missing. KEEP=1 keeps the temporary directory.
@@ -48,18 +50,39 @@ fail() { echo "$*"; return 1; }
 
 install_prefix() {
   cmake -S "$root" -B "$tmp/build" -DCMAKE_INSTALL_PREFIX="$prefix" \
-    -DMADBP_BUILD_TOOL=OFF -DMADBP_BUILD_EXAMPLES=OFF -DMADBP_BUILD_TESTS=OFF || return 1
+    -DMADBP_BUILD_TOOL=ON -DMADBP_BUILD_EXAMPLES=OFF -DMADBP_BUILD_TESTS=OFF || return 1
+  cmake --build "$tmp/build" --target madbp_madbp || return 1  # the installed tool only, not bench_alloc
   cmake --install "$tmp/build" || return 1
   for f in include/madbp_sim.hpp include/madbp.hpp include/madbp_train.hpp share/madbp/models/madbp-default.safetensors \
-           share/cmake/madbp/madbpConfig.cmake share/cmake/madbp/madbpConfigVersion.cmake share/pkgconfig/madbp.pc; do
+           share/cmake/madbp/madbpConfig.cmake share/cmake/madbp/madbpConfigVersion.cmake share/pkgconfig/madbp.pc bin/madbp; do
     [ -f "$prefix/$f" ] || fail "missing $prefix/$f" || return 1
   done
   echo "installed $(find "$prefix" -type f | wc -l) files into a temporary prefix"
 }
 
-run_consumer() {  # run_consumer BINARY MODEL_DIR: plans and names the model directory it was given
-  "$1" || return 1
-  "$1" | grep -q "planned 4 robots, 15 waypoints each.*model $2\$" || fail "expected a plan with the model in $2"
+# The installed tool finds the model installed beside it (madbp::default_model_path), from any
+# directory and after the prefix moves: a broken model put beside the moved copy is the one it
+# reads. Needing no model, --help and the expert run with MADBP_MODEL naming a missing file.
+installed_tool() (  # a subshell: it changes directory
+  local moved=$tmp/moved elsewhere=$tmp/elsewhere model=share/madbp/models/madbp-default.safetensors
+  mkdir -p "$elsewhere" && cp -r "$prefix" "$moved" || return 1
+  cd "$elsewhere" || return 1
+  env -u MADBP_MODEL "$prefix/bin/madbp" demo --out demo.svg || return 1
+  env -u MADBP_MODEL "$moved/bin/madbp" demo --out moved.svg || return 1
+  [ -s demo.svg ] && [ -s moved.svg ] || fail "demo wrote no picture" || return 1
+  echo broken >"$moved/$model"
+  if env -u MADBP_MODEL "$moved/bin/madbp" demo --out broken.svg 2>err.txt; then fail "the moved tool did not read its own model"; return 1; fi
+  grep -q "$moved/bin/../$model" err.txt || fail "error does not name the moved model: $(cat err.txt)" || return 1
+  MADBP_MODEL=$prefix/$model "$moved/bin/madbp" demo --out env.svg || return 1
+  MADBP_MODEL=/nonexistent "$moved/bin/madbp" eval --help >/dev/null || return 1
+  MADBP_MODEL=/nonexistent "$moved/bin/madbp" eval --method expert --agents 2 --episodes 1 || return 1
+  echo "installed bin/madbp: demo from $elsewhere with its installed model, also moved; MADBP_MODEL overrides it"
+)
+
+run_consumer() {  # run_consumer BINARY MODEL_DIR: plans with the default model the package points it to
+  env -u MADBP_MODEL "$1" || return 1
+  env -u MADBP_MODEL "$1" | grep -q "planned 4 robots, 15 waypoints each.*model $2/madbp-default.safetensors\$" ||
+    fail "expected a plan with the model in $2"
 }
 
 cmake_consumer() {
@@ -133,6 +156,7 @@ shard_check() {
 }
 
 check install install_prefix
+check tool installed_tool
 check cmake cmake_consumer
 check pkgconfig pkgconfig_consumer
 check fetch fetch_consumer
