@@ -108,7 +108,7 @@ model: all $(BUILD)/demos-mix.bin
 # DAgger (issue 12; docs/experiments.md "DAgger"): from the shipped model, 4 rounds of 480
 # rollouts (half of them interaction scenes), a label at every 2nd visited state, 3000 fine-tune
 # steps per round (~12 min on 2 cores; resumable: rerun to continue). The measured run, with the
-# filter weights of the time (--priority-weight 1). It did not beat the shipped model, so its
+# filter weights of the time (--set follower.priority_weight=1). It did not beat the shipped model, so its
 # output stays in build/.
 dagger: all $(BUILD)/demos-mix.bin
 	@mkdir -p $(BUILD)/dagger

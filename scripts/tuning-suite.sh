@@ -2,7 +2,7 @@
 # The 50-cell tuning sweep of MA-DBP (docs/experiments.md, "Pace at the same success"): the 36
 # interaction cells (6 scenes x 3 maps x 2 / 4 robots), circle swaps of 8 and 12 on the empty map,
 # and random spawns (empty 2/4/6/8, obstacles and barrier 2/3/4/6), each over EPISODES seeds from
-# SEED. Any further arguments go to every `madbp eval` (e.g. --lookahead 2.0 --keep-right 500).
+# SEED. Any further arguments go to every `madbp eval` (e.g. --set follower.lookahead=2.0 --set guidance.keep_right=500).
 #
 #   scripts/tuning-suite.sh OUT.jsonl SEED EPISODES [EVAL_OPTIONS...]
 #   scripts/tuning-suite.sh /tmp/base.jsonl 1000 300          # ~5 min on 2 cores
