@@ -315,7 +315,7 @@ TEST_CASE("passages: bad parameters are named") {
     std::vector<char> at{0}, wait;
     std::vector<Vec2> point;
     CHECK_THROWS_WITH_AS(pc.arbitrate(guide, WorldMap{}, 1, pos.data(), goal.data(), at.data(), wait, point),
-                         doctest::Contains("TrafficConfig"), std::invalid_argument);
+                         doctest::Contains("traffic: every length"), std::invalid_argument);
     pc.params.lookahead = std::nan("");
     CHECK_THROWS_AS(pc.arbitrate(guide, WorldMap{}, 1, pos.data(), goal.data(), at.data(), wait, point), std::invalid_argument);
     pc.params.lookahead = 1.2;

@@ -27,12 +27,12 @@ TEST_CASE("settings: the table names every field once, in groups, and its values
         CHECK(s.get(c) == doctest::Approx(other));
         for (const PlannerSetting& t : planner_settings())
             if (&t != &s) CHECK(t.get(c) == t.get(tuned));
-        CHECK_THROWS_WITH_AS(c.set(name, "nan"), doctest::Contains("planner setting " + name + ": expected"), std::invalid_argument);
+        CHECK_THROWS_WITH_AS(c.set(name, "nan"), doctest::Contains(("planner setting " + name + ": expected").c_str()), std::invalid_argument);
         if (!s.is_bool()) {  // one past the range is refused by set() and validate(), naming the setting
-            CHECK_THROWS_WITH_AS(c.set(name, number_text(s.hi * 2 + 1)), doctest::Contains("planner setting " + name + ": must be"), std::invalid_argument);
+            CHECK_THROWS_WITH_AS(c.set(name, number_text(s.hi * 2 + 1)), doctest::Contains(("planner setting " + name + ": must be").c_str()), std::invalid_argument);
             PlannerConfig bad = tuned;
             std::visit([&](auto f) { f(bad) = (std::remove_reference_t<decltype(f(bad))>)(s.hi * 2 + 1); }, s.field);
-            CHECK_THROWS_WITH_AS(bad.validate(), doctest::Contains(name), std::invalid_argument);
+            CHECK_THROWS_WITH_AS(bad.validate(), doctest::Contains(name.c_str()), std::invalid_argument);
         }
     }
     CHECK(names.size() == planner_settings().size());

@@ -143,13 +143,16 @@ TEST_CASE("suite: the paper's cell list; shards partition it; fig3a's stages sta
         CHECK(ids.insert(c.id).second);  // ids are unique
         per_group[c.group]++;
     }
-    CHECK(per_group["table1"] == 54);   // 9 (map, n) x 6 methods
-    CHECK(per_group["fig4"] == 144);    // 3 maps x 3 k x 8 n x (MA-DBP, MAPPO)
+    CHECK(per_group["table1"] == 63);   // 9 (map, n) x 7 methods (MA-DBP tuned and the paper's planner)
+    CHECK(per_group["fig4"] == 216);    // 3 maps x 3 k x 8 n x (MA-DBP tuned, the paper's planner, MAPPO)
     CHECK(per_group["table2"] == 24);
     CHECK(per_group["horizon"] == 9);
     CHECK(per_group["dynamic"] == 9);
-    CHECK(per_group["large"] == 16);    // 2 maps x 2 n x (MA-DBP, MA-DBP in neighbourhoods of 4, expert, line)
+    CHECK(per_group["large"] == 20);    // 2 maps x 2 n x (MA-DBP, the paper's planner, neighbourhoods of 4, expert, line)
     CHECK(ids.count("large/empty/n=16/madbp-k4"));
+    CHECK(per_group["interaction"] == 144);  // 6 scenes x 3 maps x 2 n x (MA-DBP, the paper's planner, expert, line)
+    CHECK(ids.count("interaction/corridor/barrier/n=4/madbp-paper"));
+    CHECK(ids.count("fig4/empty/k=3/n=6/madbp-paper"));
     CHECK(per_group["fig3b"] == 1);
     CHECK(per_group["fig3a"] == 13);    // MAPPO 1, 2, 3, 4, 8; 2 collect; 2 train; 4 evals
     CHECK(per_group["pictures"] == 3);

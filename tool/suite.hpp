@@ -43,7 +43,7 @@ namespace madbp_cli {
 // =============================================================================================
 
 inline const std::vector<std::string>& suite_groups() {
-    static const std::vector<std::string> g = {"table1", "fig4", "table2", "horizon", "dynamic", "large", "fig3b", "fig3a", "pictures"};
+    static const std::vector<std::string> g = {"table1", "fig4", "table2", "horizon", "dynamic", "large", "interaction", "fig3b", "fig3a", "pictures"};
     return g;
 }
 
@@ -59,13 +59,15 @@ struct SuiteConfig {
     bool json = false;               // one JSON line per finished cell on stdout
 
     // table1 (paper Table I): methods, and the team sizes of each map.
-    std::vector<std::string> table1_methods = {"line", "clfqp", "expert", "mappo", "madiff", "madbp"};
+    // "madbp" is the tuned planner, "madbp-paper" the paper's (--preset paper), both with the default model.
+    std::vector<std::string> table1_methods = {"line", "clfqp", "expert", "mappo", "madiff", "madbp-paper", "madbp"};
     std::vector<std::pair<std::string, std::vector<int>>> table1_cells = {
         {"empty", {2, 4, 6}}, {"obstacles", {2, 3, 4}}, {"barrier", {2, 3, 4}}};
     // fig4 (upscaling): models trained on k agents, deployed on each n.
     std::vector<std::string> fig4_maps = {"empty", "obstacles", "barrier"};
     std::vector<int> fig4_train = {2, 3, 4};
     std::vector<int> fig4_counts = {1, 2, 3, 4, 5, 6, 7, 8};
+    std::vector<std::string> fig4_planners = {"madbp", "madbp-paper"};
     // table2 (paper Table II, ablation on the empty map).
     std::vector<int> table2_train = {2, 3, 4};
     std::vector<int> table2_counts = {6, 7};
@@ -79,9 +81,14 @@ struct SuiteConfig {
     // large world (twice the side).
     std::vector<std::string> large_maps = {"empty", "obstacles"};
     std::vector<int> large_counts = {16, 32};
-    std::vector<std::string> large_methods = {"madbp", "madbp-k4", "expert", "line"};
+    std::vector<std::string> large_methods = {"madbp", "madbp-paper", "madbp-k4", "expert", "line"};
     double large_half_size = 2.4;
     int large_max_steps = 200;
+    // interaction scenes (madbp_sim.hpp Section 4b) on every map with 2 and 4 robots.
+    std::vector<std::string> interaction_scenarios = {"swap", "cross", "gap", "corridor", "parked", "circle"};
+    std::vector<std::string> interaction_maps = {"empty", "obstacles", "barrier"};
+    std::vector<int> interaction_counts = {2, 4};
+    std::vector<std::string> interaction_methods = {"madbp", "madbp-paper", "expert", "line"};
     // fig3b (decision time per step).
     std::vector<long> fig3b_counts = {1, 2, 4, 8, 16};
     int fig3b_steps = 5000;
@@ -100,7 +107,7 @@ struct SuiteConfig {
 
 inline const char* kSuiteHelp =
     "madbp eval --suite paper - every table and figure of the paper plus ours (docs/evaluation.md)\n"
-    "  --only GROUPS          comma list of table1, fig4, table2, horizon, dynamic, large, fig3b,\n"
+    "  --only GROUPS          comma list of table1, fig4, table2, horizon, dynamic, large, interaction, fig3b,\n"
     "                         fig3a, pictures (default all)\n"
     "  --episodes E           episodes per cell, seeds 0..E-1 (default 100)\n"
     "  --threads T            episodes in parallel; results do not depend on it (default 2)\n"
@@ -126,7 +133,7 @@ inline SuiteConfig read_suite_options(Args& a) {
         for (auto& g : c.only)
             if (std::find(suite_groups().begin(), suite_groups().end(), g) == suite_groups().end())
                 throw std::invalid_argument("--only: unknown group '" + g +
-                                            "' (expected table1, fig4, table2, horizon, dynamic, large, fig3b, fig3a, pictures)");
+                                            "' (expected table1, fig4, table2, horizon, dynamic, large, interaction, fig3b, fig3a, pictures)");
     }
     c.episodes = (int)a.integer("--episodes", c.episodes, 1, 1000000);
     c.threads = (int)a.integer("--threads", c.threads, 1, 256);
@@ -331,7 +338,8 @@ inline const char* variant_title(const std::string& v) {
 inline std::string method_title(const std::string& m) {
     static const std::map<std::string, std::string> t = {{"line", "straight line"}, {"clfqp", "CLF-QP"}, {"expert", "guided expert"},
                                                          {"mappo", "MAPPO"}, {"madiff", "MADiff"}, {"madbp", "MA-DBP"},
-                                                         {"madbp-k4", "MA-DBP, neighbourhoods of 4"}};
+                                                         {"madbp-k4", "MA-DBP, neighbourhoods of 4"},
+                                                         {"madbp-paper", "MA-DBP, paper's planner"}};
     auto it = t.find(m);
     return it == t.end() ? m : it->second;
 }
@@ -377,14 +385,18 @@ inline int model_replan(const std::string& path) {
 
 // A method exactly as `madbp eval --method NAME [options]` builds it. A madbp model's replan
 // interval is half its window; other methods get eval's default (8).
-// "madbp-kK": MA-DBP with neighbourhood planning of K agents per scene (`--neighbours K`).
-inline bool is_madbp(const std::string& method) { return method == "madbp" || method.rfind("madbp-k", 0) == 0; }
+// "madbp-kK": MA-DBP with neighbourhood planning of K agents per scene (`--neighbours K`);
+// "madbp-paper": the paper's planner (`--preset paper`).
+inline bool is_madbp(const std::string& method) { return method == "madbp" || method == "madbp-paper" || method.rfind("madbp-k", 0) == 0; }
 
 inline MethodSpec registry_method(std::string name, std::vector<std::string> options, const std::string& map, int n,
                                   int* replan_used = nullptr) {
     static const std::vector<Method> all = methods();
     if (name.rfind("madbp-k", 0) == 0) {
         options.insert(options.end(), {"--neighbours", name.substr(7)});
+        name = "madbp";
+    } else if (name == "madbp-paper") {
+        options.insert(options.end(), {"--preset", "paper"});
         name = "madbp";
     }
     MethodSetup setup;
@@ -406,6 +418,9 @@ struct EpisodeSetup {
     int agents = 2;
     double half_size = 1.2;
     int max_steps = 100;
+    std::string scenario;  // an interaction scene instead of random spawns ("" for none)
+    EpisodeSetup(std::string map_, int agents_, double half_size_ = 1.2, int max_steps_ = 100, std::string scenario_ = "")
+        : map(std::move(map_)), agents(agents_), half_size(half_size_), max_steps(max_steps_), scenario(std::move(scenario_)) {}
 };
 inline madbp::EvalResult run_eval(const SuiteConfig& cfg, const EpisodeSetup& e, const madbp::PolicyFactory& factory) {
     madbp::set_num_threads(1);  // one core per episode; episodes run in parallel
@@ -416,6 +431,7 @@ inline madbp::EvalResult run_eval(const SuiteConfig& cfg, const EpisodeSetup& e,
     c.seed = 0;
     c.threads = cfg.threads;
     c.half_size = e.half_size;
+    c.scenario = e.scenario;
     c.world.max_steps = e.max_steps;
     // no progress callback: the suite prints one line per cell instead
     return madbp::evaluate(c, factory);
@@ -434,6 +450,7 @@ inline SuiteCell eval_cell(const SuiteConfig& cfg, const std::string& id, const 
     }
     if (e.half_size != 1.2) c.base.set("half_size", e.half_size);
     if (e.max_steps != 100) c.base.set("max_steps", e.max_steps);
+    if (!e.scenario.empty()) c.base.set("scenario", e.scenario);
     c.run = [&cfg, method, e, model](SuiteRecord& r) {
         int replan = 0;
         MethodSpec spec = registry_method(method, model.empty() ? std::vector<std::string>{} : std::vector<std::string>{"--model", model},
@@ -761,6 +778,9 @@ inline std::string horizon_id(int H, int n) { return "horizon/H=" + std::to_stri
 inline std::string large_id(const std::string& map, int n, const std::string& method) {
     return "large/" + map + "/n=" + std::to_string(n) + "/" + method;
 }
+inline std::string interaction_id(const std::string& scenario, const std::string& map, int n, const std::string& method) {
+    return "interaction/" + scenario + "/" + map + "/n=" + std::to_string(n) + "/" + method;
+}
 inline const std::vector<std::string>& table2_variants() {
     static const std::vector<std::string> v = {"CT-LE", "CT-AAP", "MW-LE", "MW-AAP"};
     return v;
@@ -779,15 +799,17 @@ inline std::vector<SuiteCell> suite_cells(const SuiteConfig& cfg) {
         for (int n : counts)
             for (const std::string& m : cfg.table1_methods) {
                 const std::string model = m == "mappo" ? models.mappo(map, n) : m == "madiff" ? models.madiff(map, n)
-                                        : m == "madbp" ? models.madbp_default() : "";
+                                        : is_madbp(m) ? models.madbp_default() : "";
                 add(eval_cell(cfg, table1_id(map, n, m), "table1", m, EpisodeSetup{map, n}, model));
             }
     for (const std::string& map : cfg.fig4_maps)
         for (int k : cfg.fig4_train)
             for (int n : cfg.fig4_counts) {
-                SuiteCell c = eval_cell(cfg, fig4_id("madbp", map, k, n), "fig4", "madbp", EpisodeSetup{map, n}, models.madbp_trained_on(k));
-                c.base.set("k", k);
-                add(c);
+                for (const std::string& m : cfg.fig4_planners) {
+                    SuiteCell c = eval_cell(cfg, fig4_id(m, map, k, n), "fig4", m, EpisodeSetup{map, n}, models.madbp_trained_on(k));
+                    c.base.set("k", k);
+                    add(c);
+                }
                 add(mappo_upscale_cell(cfg, fig4_id("mappo", map, k, n), map, k, n, models.mappo(map, k)));
             }
     for (const std::string& v : table2_variants())
@@ -811,6 +833,13 @@ inline std::vector<SuiteCell> suite_cells(const SuiteConfig& cfg) {
             for (const std::string& m : cfg.large_methods)
                 add(eval_cell(cfg, large_id(map, n, m), "large", m, EpisodeSetup{map, n, cfg.large_half_size, cfg.large_max_steps},
                               is_madbp(m) ? models.madbp_default() : ""));
+    for (const std::string& scenario : cfg.interaction_scenarios)
+        for (const std::string& map : cfg.interaction_maps)
+            for (int n : cfg.interaction_counts)
+                for (const std::string& m : cfg.interaction_methods) {
+                    add(eval_cell(cfg, interaction_id(scenario, map, n, m), "interaction", m, EpisodeSetup{map, n, 1.2, 100, scenario},
+                                  is_madbp(m) ? models.madbp_default() : ""));
+                }
     add(fig3b_cell(cfg, models.madbp_default()));
     add_fig3a_cells(cells, cfg, unit++);
     add(picture_cell(cfg, "barrier-n" + std::to_string(cfg.picture_barrier_agents), "barrier", cfg.picture_barrier_agents, 1.2, 100,
@@ -1075,25 +1104,29 @@ inline std::string table1_report(const SuiteConfig& cfg, const SuiteStore& st) {
     return "# Table I: success with the same n in training and test (paper Table I)\n\n" + episodes_note(st, "table1/") +
            " Each cell: success ± standard error / collisions per episode. \"(paper)\" columns are the paper's "
            "published numbers (mean ± se over its 20 episodes). MAPPO and MADiff are trained per (map, n); MA-DBP is one "
-           "model (models/madbp-default.safetensors) for every cell.\n\n" +
+           "model (models/madbp-default.safetensors) for every cell; \"MA-DBP\" is the tuned planner, \"paper's planner\" the same "
+           "model with `--preset paper` (plain DDIM with goal inpainting, the SPEC 8 follower).\n\n" +
            t.text() + "\n\\* " + kBarrierNote + "\n";
 }
 
 inline std::string fig4_report(const SuiteConfig& cfg, const SuiteStore& st) {
     std::string md = "# Fig. 4: upscaling, trained on k agents, deployed on n\n\n" + episodes_note(st, "fig4/") +
                      " Each cell: success ± standard error / collisions per episode. MA-DBP k = 2, 3: models/paper/madbp-n{k}; "
-                     "k = 4: the default model. MAPPO k: the policy trained on k agents of the map, its actor run on every agent "
+                     "k = 4: the default model; \"MA-DBP\" is the tuned planner, \"paper's planner\" the same model with "
+                     "`--preset paper` (plain DDIM with goal inpainting, the SPEC 8 follower). MAPPO k: the policy trained on k agents of the map, its actor run on every agent "
                      "of the larger (or smaller) team. \"paper\": the paper's MA-DBP on the empty map (its Table II MA-DBP row; "
                      "Fig. 4's own values are not in the paper's text).\n";
     for (const std::string& map : cfg.fig4_maps) {
         MdTable t;
         t.header = {"n"};
-        for (const char* m : {"madbp", "mappo"})
+        std::vector<std::string> columns = cfg.fig4_planners;
+        columns.push_back("mappo");
+        for (const std::string& m : columns)
             for (int k : cfg.fig4_train) t.header.push_back(method_title(m) + " k=" + std::to_string(k));
         if (map == "empty") t.header.push_back("paper MA-DBP");
         for (int n : cfg.fig4_counts) {
             std::vector<std::string> row = {std::to_string(n)};
-            for (const char* m : {"madbp", "mappo"})
+            for (const std::string& m : columns)
                 for (int k : cfg.fig4_train) row.push_back(eval_text(st, fig4_id(m, map, k, n)));
             if (map == "empty") {
                 std::string p;
@@ -1222,8 +1255,31 @@ inline std::string large_report(const SuiteConfig& cfg, const SuiteStore& st) {
     return "# A world of twice the side (half-size " + num_text(cfg.large_half_size, 1) + ", " + std::to_string(cfg.large_max_steps) +
            " steps)\n\n" + episodes_note(st, "large/") +
            " Our goal (SPEC 9): MA-DBP >= .90 at n = 16 on the empty map; 32 reported. MA-DBP is the default model "
-           "(trained in the standard world, half-size 1.2, with n <= 4).\n\n" +
+           "(trained in the standard world, half-size 1.2, with n <= 4); \"paper's planner\" is it with `--preset paper`.\n\n" +
            t.text();
+}
+
+// Interaction scenes: each (scene, map, n) row, a column per method.
+inline std::string interaction_report(const SuiteConfig& cfg, const SuiteStore& st) {
+    MdTable t;
+    t.header = {"scene", "map", "n"};
+    for (const std::string& m : cfg.interaction_methods) t.header.push_back(method_title(m));
+    for (const std::string& m : cfg.interaction_methods) t.header.push_back(method_title(m) + " steps");
+    for (const std::string& scenario : cfg.interaction_scenarios)
+        for (const std::string& map : cfg.interaction_maps)
+            for (int n : cfg.interaction_counts) {
+                std::vector<std::string> row = {scenario, map == "barrier" ? "barrier*" : map, std::to_string(n)};
+                for (const std::string& m : cfg.interaction_methods) row.push_back(eval_text(st, interaction_id(scenario, map, n, m)));
+                for (const std::string& m : cfg.interaction_methods) {
+                    const SuiteRecord* r = ok_record(st, interaction_id(scenario, map, n, m));
+                    row.push_back(r ? num_text(r->num("steps"), 1) : "-");
+                }
+                t.rows.push_back(row);
+            }
+    return "# Interaction scenes: swaps, crossings, gaps, corridors, parked robots, circles\n\n" + episodes_note(st, "interaction/") +
+           " Each cell: success ± standard error / collisions per episode; steps: mean of successful episodes. Scenes from "
+           "`make_interaction_world` (madbp_sim.hpp Section 4b), 100 steps. \"MA-DBP\" is the tuned planner, \"paper's planner\" "
+           "the same model with `--preset paper`.\n\n" + t.text() + "\n\\* " + kBarrierNote + "\n";
 }
 
 inline std::string fig3b_report(const SuiteConfig& cfg, const SuiteStore& st) {
@@ -1396,6 +1452,7 @@ inline void write_suite_reports(const SuiteConfig& cfg, const std::vector<SuiteC
     write_horizon_svg(cfg, st, o + "/horizon.svg");
     write_report(o + "/dynamic.md", dynamic_report(cfg, st));
     write_report(o + "/large.md", large_report(cfg, st));
+    write_report(o + "/interaction.md", interaction_report(cfg, st));
     write_report(o + "/fig3b.md", fig3b_report(cfg, st));
     write_fig3b_svg(cfg, st, o + "/fig3b.svg");
     write_report(o + "/fig3a.md", fig3a_report(cfg, st, cells));
