@@ -79,8 +79,9 @@
 //     TrajectoryProcessor                                                              [5]
 //   5 the model: MadbpModel, save_model, load_model, default_model_path (the shipped model:
 //     $MADBP_MODEL, the install, the checkout)                                         [5, 11]
-//   6 diffusion: NoiseSchedule, DistanceField, MapFields, WindowCost, SamplerConfig,
-//     sample_windows (DDIM with inpainting, guidance, best-of-k, keep-right, end bend, warm start) [6]
+//   6 diffusion: NoiseSchedule, detail::ddim_loop (the one DDIM loop: plain, guided, MADiff),
+//     DistanceField, MapFields, WindowCost, SamplerConfig, sample_windows (DDIM with inpainting,
+//     guidance, best-of-k, keep-right, end bend, warm start)                            [6]
 //   7 planner settings: TrafficConfig, PlannerConfig (tuned(), paper(), validate, set),
 //     PlannerSetting, planner_settings (the table), kSmallPlanWindows                 [8]
 //   8 traffic conventions: PassageControl (one-lane passages: take turns, go around, queue) [8]
@@ -95,6 +96,7 @@
 //        the kDefault* constants and planner_sample_steps are gone (their values: PlannerConfig).
 //        PassageControl moves here from madbp_sim.hpp (Section 8); PassageParams is TrafficConfig.
 //        make_follower; DecentralisedTeam (from the tool). default_model_path.
+//        detail::ddim_loop: one DDIM loop for the plain, guided and MADiff samplers.
 //   0.2  One FilmUNet, ContextEncoder and TrajectoryProcessor; one world-to-model encoder.
 //        BatchNorm statistics in ParamStore::state; optimizer-state I/O moved to madbp_train.hpp.
 //        The Local scene frame, route subgoals, ModelConfig::n_train_max (absent = as in 0.1).
@@ -2809,6 +2811,41 @@ inline float predict_x0(float x_k, float eps, double alpha_bar) {
     return (float)((x_k - std::sqrt(1 - alpha_bar) * eps) / std::sqrt(alpha_bar));
 }
 
+namespace detail {
+// One DDIM step's noise levels: from diffusion step k (of DDIM step s of S) to k_prev.
+struct DdimLevels {
+    int k = 0, k_prev = 0;
+    double alpha_bar = 1;
+    float sa = 1, s1a = 0, sap = 1, s1ap = 0;  // sqrt(alpha_bar), sqrt(1 - alpha_bar), and the same at k_prev
+    DdimLevels(const NoiseSchedule& schedule, int s, int S)
+        : k(schedule.ddim_step(s, S)), k_prev(schedule.ddim_step(s - 1, S)), alpha_bar(schedule.alpha_bar[k]) {
+        const double ab_prev = schedule.alpha_bar[k_prev];
+        sa = (float)std::sqrt(alpha_bar), s1a = (float)std::sqrt(1 - alpha_bar);
+        sap = (float)std::sqrt(ab_prev), s1ap = (float)std::sqrt(1 - ab_prev);
+    }
+};
+
+// The DDIM loop (eta = 0) of every sampler: the planner's plain and guided ones and MADiff's
+// (madbp_train.hpp). For DDIM steps s = s_top .. 1 of S: x0_hat(levels, x0) writes the predicted
+// clean sample for the current x (the network's, clipped, and steered where a sampler steers:
+// guidance, classifier-free guidance); x moves to the next level with the noise that x0 implies;
+// pin(x) re-imposes what is known (inpainting). x0 has x's shape (it may be the denoiser's output).
+template <class PredictX0, class Pin>
+void ddim_loop(const NoiseSchedule& schedule, int S, int s_top, Mat& x, Mat& x0, PredictX0&& x0_hat, Pin&& pin) {
+    for (int s = s_top; s >= 1; --s) {
+        const DdimLevels l(schedule, s, S);
+        x0_hat(l, x0);
+        MADBP_ASSERT(x0.size() == x.size());
+        for (long j = 0; j < x.size(); ++j) {
+            const float xj = x.data()[j], x0j = x0.data()[j];
+            const float e = (xj - l.sa * x0j) / l.s1a;  // the noise consistent with the (clipped, steered) x0
+            x.data()[j] = l.sap * x0j + l.s1ap * e;
+        }
+        pin(x);
+    }
+}
+}  // namespace detail
+
 // ---------------------------------------------------------------------------------------------
 // Conflict-aware sampling (issue 12): a differentiable cost of a scene's windows (robots too
 // close to each other, robots too close to the map, ends far from the goals) that guides every
@@ -3290,6 +3327,17 @@ inline bool warm_window(const std::vector<Vec2>& last, long elapsed, Vec2 pos, c
     return true;
 }
 
+// The denoiser's clipped x0_hat for x at DDIM levels l (its eps turned into x0 for an eps model),
+// every scene at step l.k: the plain sampler's prediction, which the guided one then steers.
+template <class Denoiser>
+void x0_prediction(Denoiser& model, const Mat& x, const DdimLevels& l, const SamplerConfig& sc, std::vector<int>& steps, Mat& x0) {
+    std::fill(steps.begin(), steps.end(), l.k);
+    model.denoise(x, steps.data(), x0);
+    const bool eps_mode = model.config.prediction == Prediction::Eps;
+    float* p = x0.data();
+    for (long j = 0; j < x.size(); ++j) p[j] = std::clamp(eps_mode ? (x.data()[j] - l.s1a * p[j]) / l.sa : p[j], -sc.x0_clip, sc.x0_clip);
+}
+
 // sample_windows with SamplerConfig::guidance and candidates: the batch's scenes repeated k
 // times (repeat_scenes) and denoised together; at every DDIM step the clipped x0_hat takes one
 // gradient step on its WindowCost (scaled so that a waypoint moves -W * d cost / d waypoint
@@ -3313,28 +3361,16 @@ void sample_conflict_aware(Denoiser& model, const NoiseSchedule& schedule, const
     cw.steps.resize(Bk);
     // d x0 = -W / window_scale^2 * d cost / d x0 moves a waypoint by -W * d cost / d P (world units).
     const float step_size = (float)(sc.guidance / ((double)c.window_scale * c.window_scale));
-    for (int s = s_top; s >= 1; --s) {
-        const int kd = schedule.ddim_step(s, S), k_prev = schedule.ddim_step(s - 1, S);
-        std::fill(cw.steps.begin(), cw.steps.end(), kd);
-        model.denoise(x, cw.steps.data(), cw.out);
-        const double ab = schedule.alpha_bar[kd], ab_prev = schedule.alpha_bar[k_prev];
-        const float sa = (float)std::sqrt(ab), s1a = (float)std::sqrt(1 - ab);
-        const float sap = (float)std::sqrt(ab_prev), s1ap = (float)std::sqrt(1 - ab_prev);
-        const bool eps_mode = c.prediction == Prediction::Eps;
-        float* x0 = cw.out.data();  // x0_hat replaces the network's output in place
-        for (long j = 0; j < x.size(); ++j) x0[j] = std::clamp(eps_mode ? (x.data()[j] - s1a * x0[j]) / sa : x0[j], -sc.x0_clip, sc.x0_clip);
+    auto guided_x0 = [&](const DdimLevels& l, Mat& x0) {  // x0 is cw.out: window_cost reads it
+        x0_prediction(model, x, l, sc, cw.steps, x0);
         if (sc.guidance > 0) {
             cw.grad.setZero(2, x.cols());
-            for (int b = 0; b < Bk; ++b) window_cost(rb, b, cw.out, c, wc, cw.fields, &cw.grad, sc.keep_right);
-            for (long j = 0; j < x.size(); ++j) x0[j] = std::clamp(x0[j] - step_size * cw.grad.data()[j], -sc.x0_clip, sc.x0_clip);
+            for (int b = 0; b < Bk; ++b) window_cost(rb, b, x0, c, wc, cw.fields, &cw.grad, sc.keep_right);
+            float* p = x0.data();
+            for (long j = 0; j < x.size(); ++j) p[j] = std::clamp(p[j] - step_size * cw.grad.data()[j], -sc.x0_clip, sc.x0_clip);
         }
-        for (long j = 0; j < x.size(); ++j) {
-            const float xj = x.data()[j];
-            const float e = (xj - sa * x0[j]) / s1a;  // the noise consistent with the (guided, clipped) x0
-            x.data()[j] = sap * x0[j] + s1ap * e;
-        }
-        impose_pins(rb, c, sc, x);
-    }
+    };
+    ddim_loop(schedule, S, s_top, x, cw.out, guided_x0, [&](Mat& xs) { impose_pins(rb, c, sc, xs); });
     // Best of k: each scene keeps its first lowest-cost candidate.
     cw.cost.resize(Bk);
     cw.best.resize(B);
@@ -3375,22 +3411,8 @@ void sample_windows(Denoiser& model, const NoiseSchedule& schedule, const SceneB
     const int s_top = detail::warm_from(schedule, sc, warm, (long)batch.n * H, 1, x);
     detail::impose_pins(batch, c, sc, x);
     step_buf.resize(B);
-    for (int s = s_top; s >= 1; --s) {
-        const int k = schedule.ddim_step(s, S), k_prev = schedule.ddim_step(s - 1, S);
-        std::fill(step_buf.begin(), step_buf.end(), k);
-        model.denoise(x, step_buf.data(), out);
-        const double ab = schedule.alpha_bar[k], ab_prev = schedule.alpha_bar[k_prev];
-        const float sa = (float)std::sqrt(ab), s1a = (float)std::sqrt(1 - ab);
-        const float sap = (float)std::sqrt(ab_prev), s1ap = (float)std::sqrt(1 - ab_prev);
-        const bool eps_mode = c.prediction == Prediction::Eps;
-        for (long j = 0; j < x.size(); ++j) {
-            const float xj = x.data()[j], oj = out.data()[j];
-            const float x0 = std::clamp(eps_mode ? (xj - s1a * oj) / sa : oj, -sc.x0_clip, sc.x0_clip);
-            const float e = (xj - sa * x0) / s1a;  // the noise consistent with the clipped x0
-            x.data()[j] = sap * x0 + s1ap * e;
-        }
-        detail::impose_pins(batch, c, sc, x);
-    }
+    detail::ddim_loop(schedule, S, s_top, x, out, [&](const detail::DdimLevels& l, Mat& x0) { detail::x0_prediction(model, x, l, sc, step_buf, x0); },
+                      [&](Mat& xs) { detail::impose_pins(batch, c, sc, xs); });
     detail::bend_to_pinned_ends(batch, c, sc, x);
 }
 

@@ -2788,26 +2788,20 @@ public:
         const float ret[2] = {return_target, return_target}, keep[2] = {1, 0};
         int k2[2];
         xx_.resize(O, 2L * H * n);
-        for (int s = S; s >= 1; --s) {
-            const int k = schedule_.ddim_step(s, S), k_prev = schedule_.ddim_step(s - 1, S);
-            k2[0] = k2[1] = k;
+        // The planner's DDIM loop (madbp.hpp detail::ddim_loop), steered by classifier-free guidance.
+        auto guided_x0 = [&](const detail::DdimLevels& l, Mat& x0) {
+            k2[0] = k2[1] = l.k;
             xx_.leftCols((long)H * n) = x_;
             xx_.rightCols((long)H * n) = x_;
             model_.denoise(xx_, 2, n, k2, ret, keep, out_);
-            const double ab = schedule_.alpha_bar[k], ab_prev = schedule_.alpha_bar[k_prev];
-            const float sa = (float)std::sqrt(ab), s1a = (float)std::sqrt(1 - ab);
-            const float sap = (float)std::sqrt(ab_prev), s1ap = (float)std::sqrt(1 - ab_prev);
             // The noise each branch's x0 implies, then guidance (the formula on eps).
-            eps_c_ = (x_ - sa * out_.leftCols((long)H * n)) / s1a;
-            eps_u_ = (x_ - sa * out_.rightCols((long)H * n)) / s1a;
+            eps_c_ = (x_ - l.sa * out_.leftCols((long)H * n)) / l.s1a;
+            eps_u_ = (x_ - l.sa * out_.rightCols((long)H * n)) / l.s1a;
             classifier_free_guidance(eps_c_, eps_u_, guidance, eps_);
-            for (long j = 0; j < x_.size(); ++j) {  // DDIM (eta = 0) with x0_hat clipped, as sample_windows
-                const float x0 = std::clamp(predict_x0(x_.data()[j], eps_.data()[j], ab), -c.x0_clip, c.x0_clip);
-                const float e = (x_.data()[j] - sa * x0) / s1a;
-                x_.data()[j] = sap * x0 + s1ap * e;
-            }
-            inpaint();
-        }
+            x0.resize(O, (long)H * n);
+            for (long j = 0; j < x_.size(); ++j) x0.data()[j] = std::clamp(predict_x0(x_.data()[j], eps_.data()[j], l.alpha_bar), -c.x0_clip, c.x0_clip);
+        };
+        detail::ddim_loop(schedule_, S, S, x_, x0_, guided_x0, [&](Mat&) { inpaint(); });
         o_next_.resize(O, n);
         for (int i = 0; i < n; ++i) o_next_.col(i) = x_.col((long)i * H + 1);
         model_.inv.forward(obs_, o_next_, a_);
@@ -2825,7 +2819,7 @@ private:
     MadiffModel model_;
     NoiseSchedule schedule_;
     Rng rng_;
-    Mat obs_, x_, xx_, out_, eps_c_, eps_u_, eps_, o_next_, a_;
+    Mat obs_, x_, xx_, out_, eps_c_, eps_u_, eps_, x0_, o_next_, a_;
     double total_ms_ = 0;
     long calls_ = 0;
 };
