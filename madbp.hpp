@@ -62,7 +62,8 @@
 //     MultiHeadAttention, Conv1d, ConvTranspose1d, BatchNorm1d, MaxPool1d, Upsample1d, Conv2d,
 //     ReLU, SiLU, Mish, Tanh, Embedding, sinusoidal_embedding, film_forward, Adam,
 //     clip_grad_norm, Ema                                                              [4]
-//   2 checkpoints: NamedTensor, SafeTensors, parse/serialize_safetensors, write_file_atomic,
+//   2 checkpoints: NamedTensor, SafeTensors, parse/serialize_safetensors (files are written by
+//     madbp_sim.hpp's write_file_atomic),
 //     save/load_safetensors, param_tensors, read_param_tensors, save/load_params       [11]
 //   3 model inputs: ModelConfig (SceneFrame), SceneBatch, scene_origin, encode_map,
 //     route_goal, encode_agent, priority_values, end_pinned                             [5]
@@ -1572,52 +1573,6 @@ inline std::vector<uint8_t> serialize_safetensors(const std::vector<NamedTensor>
         dst += 4 * t.data.size();
     }
     return out;
-}
-
-namespace detail {
-[[noreturn]] inline void io_fail(const std::string& path, const std::string& what) {
-    throw std::runtime_error(path + ": " + what + ": " + std::strerror(errno));
-}
-}  // namespace detail
-
-// Writes bytes to `path` atomically: `path.tmp` is written and fsynced, then renamed over
-// `path` (and the directory fsynced), so a crash leaves either the old file or the new one.
-inline void write_file_atomic(const std::string& path, const std::vector<uint8_t>& bytes) {
-    const std::string tmp = path + ".tmp";
-    const int fd = ::open(tmp.c_str(), O_WRONLY | O_CREAT | O_TRUNC | O_CLOEXEC, 0644);
-    if (fd < 0) detail::io_fail(tmp, "cannot create");
-    size_t done = 0;
-    while (done < bytes.size()) {
-        const ssize_t w = ::write(fd, bytes.data() + done, bytes.size() - done);
-        if (w < 0 && errno == EINTR) continue;
-        if (w <= 0) {
-            const int err = errno;
-            ::close(fd);
-            ::unlink(tmp.c_str());
-            errno = err;
-            detail::io_fail(tmp, "write failed");
-        }
-        done += (size_t)w;
-    }
-    if (::fsync(fd) != 0 || ::close(fd) != 0) {
-        const int err = errno;
-        ::unlink(tmp.c_str());
-        errno = err;
-        detail::io_fail(tmp, "fsync/close failed");
-    }
-    if (::rename(tmp.c_str(), path.c_str()) != 0) {
-        const int err = errno;
-        ::unlink(tmp.c_str());
-        errno = err;
-        detail::io_fail(path, "rename from " + tmp + " failed");
-    }
-    const size_t slash = path.find_last_of('/');
-    const std::string dir = slash == std::string::npos ? "." : slash == 0 ? "/" : path.substr(0, slash);
-    const int dfd = ::open(dir.c_str(), O_RDONLY | O_CLOEXEC);
-    if (dfd >= 0) {  // best effort: some file systems refuse fsync on directories
-        ::fsync(dfd);
-        ::close(dfd);
-    }
 }
 
 // The bytes of `path` (a regular file or a pipe). A directory, a device (/dev/zero) or a file

@@ -206,7 +206,7 @@ inline DemoSet collect_demonstrations(const CollectConfig& c, const Demonstrator
 //   string map_name, f64 half_size, u32 discs + discs * (f64 cx, cy, r),
 //   u32 boxes + boxes * (f64 x0, y0, x1, y1), u32 agents, u32 steps, u8 success,
 //   goals agents*(f32 x, y), pos and vel (steps+1)*agents*(f32 x, y), act steps*agents*(f32 x, y).
-//   A string is u32 length + bytes. Written atomically (temp file + rename).
+//   A string is u32 length + bytes. Written by write_file_atomic.
 // Limits (docs/limits.md), checked before allocating: the file <= kMaxDatasetBytes; per episode
 // half_size <= kMaxHalfSize, discs + boxes <= kMaxObstacles, 1 <= agents <= kMaxDatasetAgents,
 // 1 <= steps <= kMaxDatasetSteps; every count must also fit the bytes left in the file.

@@ -1,10 +1,13 @@
 // cli_common.hpp - argument parsing and output helpers shared by the madbp command-line tool.
 // Not part of the library: the tool's own plumbing.
 #pragma once
+#include <sys/stat.h>
 #include <unistd.h>
 
 #include <algorithm>
+#include <cerrno>
 #include <chrono>
+#include <cstring>
 #include <memory>
 #include <cstdio>
 #include <map>
@@ -113,6 +116,51 @@ struct Args {
         if (!positional.empty()) throw std::invalid_argument("unexpected argument '" + positional[0] + "'");
     }
 };
+
+// A file a command writes, with the flag that named it (for messages).
+struct FileArg {
+    std::string flag, path;
+};
+
+// True when `a` and `b` name one existing file (device and inode, links followed).
+inline bool same_file(const std::string& a, const std::string& b) {
+    struct stat sa, sb;
+    return ::stat(a.c_str(), &sa) == 0 && ::stat(b.c_str(), &sb) == 0 && sa.st_dev == sb.st_dev && sa.st_ino == sb.st_ino;
+}
+
+// The outputs of a run, claimed before its work starts, so that hours of training never end
+// in a refused write: each output and each output + sidecar suffix (a run's FILE.train,
+// FILE.csv, ...) must not be a file any other flag names (--data, --model, --scene: an input;
+// std::invalid_argument naming both flags) and must be a file madbp may replace
+// (madbp::check_output); each output is then locked for the run (madbp::OutputLock, which
+// covers its sidecars): a second run writing it is told so.
+inline std::vector<std::unique_ptr<madbp::OutputLock>> claim_outputs(const Args& a, const std::vector<FileArg>& outputs,
+                                                                     const std::vector<std::string>& sidecars = {}) {
+    std::vector<std::unique_ptr<madbp::OutputLock>> locks;
+    for (const FileArg& out : outputs) {
+        std::vector<std::string> paths = {out.path};
+        for (const std::string& s : sidecars) paths.push_back(out.path + s);
+        for (const std::string& path : paths) {
+            for (const auto& kv : a.repeats)
+                for (const std::string& in : kv.second)
+                    if (kv.first != out.flag && same_file(path, in))
+                        throw std::invalid_argument(out.flag + " " + madbp::printable(path, 256) + " is the same file as " + kv.first + " " +
+                                                    madbp::printable(in, 256) + "; choose another output");
+            madbp::check_output(path);
+        }
+        locks.push_back(std::make_unique<madbp::OutputLock>(out.path));
+    }
+    return locks;
+}
+
+// Throws madbp::EnvironmentError when what was written to `f` (standard output) is lost: a
+// full disk, /dev/full, a closed descriptor. Results that never arrived are not a success.
+inline void check_written(FILE* f, const char* name = "standard output") {
+    errno = 0;
+    const bool flushed = std::fflush(f) == 0;
+    if (flushed && !std::ferror(f)) return;
+    throw madbp::EnvironmentError(std::string("cannot write the results to ") + name + (errno ? std::string(": ") + std::strerror(errno) : ""));
+}
 
 // `world` `steps` steps on with every robot held still: a plan of it right after a plan of
 // `world` starts from that plan's windows (SamplerConfig::warm_start). bench --plan times such

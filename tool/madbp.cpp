@@ -7,7 +7,8 @@
 //     function that reads its own options and returns a per-episode PolicyFactory). Planners
 //     plug in through madbp::PlanFollower.
 //   - a subcommand: one entry in subcommands() in main().
-// Bad input prints one line on stderr and exits with code 2.
+// Bad input prints one line on stderr and exits with code 2; a failure of the environment (a
+// write the disk refused, lost standard output) exits with code 1.
 #include <omp.h>
 
 #include <cstring>
@@ -151,7 +152,7 @@ int cmd_eval(Args& a) {
                             fixed(r.success_se, 3).c_str(), fixed(r.collisions, 2).c_str(), fixed(r.steps, 1).c_str(),
                             fixed(r.decision_ms, 3).c_str());
             }
-            std::fflush(stdout);
+            check_written(stdout);  // stop at the first lost cell, not after the whole run
         }
     return 0;
 }
@@ -162,6 +163,7 @@ int render_episode(const Method& method, Args& a, MethodSetup setup, const madbp
                    const std::string& scenario = "") {
     MethodSpec spec = method.make(a, setup);
     a.finish();
+    const auto locks = claim_outputs(a, {{"--out", out}});
     madbp::WorldConfig wc;
     wc.max_steps = max_steps;
     madbp::World world = scene               ? madbp::make_world(*scene, wc)
@@ -347,11 +349,16 @@ int main(int argc, char** argv) {
         for (auto& s : subcommands()) {
             if (name != s.name) continue;
             Args args(argc, argv, 2);
-            return s.run(args);
+            const int rc = s.run(args);
+            check_written(stdout);
+            return rc;
         }
-        throw std::invalid_argument("unknown subcommand '" + name + "' (try madbp --help)");
+        throw std::invalid_argument("unknown subcommand '" + madbp::printable(name) + "' (try madbp --help)");
+    } catch (const madbp::EnvironmentError& e) {  // disk full, lost stdout: one line, exit code 1
+        std::fprintf(stderr, "madbp %s: %s\n", madbp::printable(name).c_str(), e.what());
+        return 1;
     } catch (const std::exception& e) {  // bad flags, files, maps: one line, exit code 2
-        std::fprintf(stderr, "madbp %s: %s\n", name.c_str(), e.what());
+        std::fprintf(stderr, "madbp %s: %s\n", madbp::printable(name).c_str(), e.what());
         return 2;
     }
 }

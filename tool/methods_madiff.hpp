@@ -104,6 +104,7 @@ inline int cmd_madiff(Args& a) {
     const madbp::DemoSet demos = madbp::load_demos(data);
     const size_t slash = tc.out.find_last_of('/');
     if (slash != std::string::npos && slash > 0) ::mkdir(tc.out.substr(0, slash).c_str(), 0755);  // e.g. models/madiff; exists: fine
+    const auto locks = claim_outputs(a, {{"--out", tc.out}}, {".train", ".csv"});
     madbp::MadiffModel model(mc);
     tc.progress = progress_line("madiff " + mc.map + " n=" + std::to_string(mc.agents));
     const madbp::MadiffReport r = madbp::train_madiff(demos, mc, tc, &model);

@@ -174,6 +174,7 @@ inline int cmd_mappo(Args& a) {
     }
     const size_t slash = c.out.find_last_of('/');
     if (slash != std::string::npos && slash > 0) ::mkdir(c.out.substr(0, slash).c_str(), 0755);  // e.g. models/mappo; exists: fine
+    const auto locks = claim_outputs(a, {{"--out", c.out}}, {".train", ".csv", ".svg"});
     c.progress = progress_line("mappo " + c.map + " n=" + std::to_string(c.agents));
     madbp::MappoReport r = madbp::train_mappo(c);
     if (!c.out.empty())

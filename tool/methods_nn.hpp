@@ -301,6 +301,7 @@ inline int cmd_collect(Args& a) {
     std::string model = a.str("--model", "");
     bool json = a.flag("--json");
     a.finish();
+    const auto locks = claim_outputs(a, {{"--out", out}});
     if (dem != "expert" && dem != "mappo") throw std::invalid_argument("--demonstrator: unknown demonstrator '" + dem + "' (expected expert or mappo)");
     if (dem == "mappo" && model.empty())
         throw std::invalid_argument("--model: --demonstrator mappo needs a policy file, e.g. 'models/mappo/empty-{n}.safetensors' ({n} = team size)");
@@ -411,6 +412,7 @@ inline int cmd_train(Args& a) {
     int threads = (int)a.integer("--threads", 2, 1, 256);
     bool json = a.flag("--json");
     a.finish();
+    const auto locks = claim_outputs(a, {{"--out", tc.out}}, {".train", ".csv", ".svg"});
     mc.validate();
     tc.threads = threads;
     madbp::set_num_threads(threads);
@@ -477,6 +479,7 @@ inline int cmd_dagger(Args& a) {
     c.train.seed = seed;
     const int threads = (int)a.integer("--threads", 2, 1, 256);
     a.finish();
+    const auto locks = claim_outputs(a, {{"--out", c.train.out}}, {".train", ".csv", ".dagger.csv"});
     c.rollouts.threads = threads;
     c.train.threads = threads;
     madbp::set_num_threads(1);

@@ -1,0 +1,161 @@
+// Tests of files you can trust (issue 48, docs/limits.md): safe writes, honest exit codes,
+// bounded reads, strict flags and plausible inputs; one test case per cause the issue found,
+// each failing on the code before it. The whole file runs in about a second.
+#include "limits_helpers.hpp"
+#include "methods.hpp"  // the tool's Args, claim_outputs, check_written
+
+#include <csignal>
+#include <fcntl.h>
+#include <sys/stat.h>
+
+using madbp_cli::Args;
+
+namespace {
+
+std::string read_text(const std::string& path) {
+    std::string text;
+    detail::read_bounded(path, 1 << 20, "test", text);
+    return text;
+}
+
+mode_t mode_of(const std::string& path) {
+    struct stat sb;
+    REQUIRE(::lstat(path.c_str(), &sb) == 0);
+    return sb.st_mode;
+}
+
+// What `fn` does in a forked child: "ok", or the message it throws prefixed by "runtime: " or
+// "environment: " (an EnvironmentError). The child forgets the parent's output locks, as
+// another run would not have them.
+std::string in_child(const std::function<void()>& fn) {
+    return capped(256, [&] {
+        detail::held_locks().clear();
+        try {
+            fn();
+        } catch (const EnvironmentError& e) {
+            return std::string("environment: ") + e.what();
+        }
+        return std::string();
+    });
+}
+
+}  // namespace
+
+TEST_CASE("trust: --out naming a device, a FIFO or a directory is refused, the target untouched") {
+    TempDir dir;
+    const std::string fifo = dir.file("fifo"), sub = dir.file("sub");
+    REQUIRE(::mkfifo(fifo.c_str(), 0644) == 0);
+    REQUIRE(::mkdir(sub.c_str(), 0755) == 0);
+    // Before: the FIFO (or /dev/null, as root) was replaced by a regular file.
+    CHECK(contains(error_of([&] { write_text_file(fifo, "x"); }), "fifo: is a device, FIFO or socket, not a regular file to write"));
+    CHECK(S_ISFIFO(mode_of(fifo)));
+    CHECK(contains(error_of([&] { write_text_file(sub, "x"); }), "sub: is a directory"));
+    CHECK(S_ISDIR(mode_of(sub)));
+    CHECK(contains(error_of([] { write_text_file("/dev/null", "x"); }), "/dev/null: is a device"));
+    CHECK(S_ISCHR(mode_of("/dev/null")));
+    ::rmdir(sub.c_str());
+}
+
+TEST_CASE("trust: a symlink at OUT.tmp is not followed; a symlink at OUT is refused") {
+    TempDir dir;
+    const std::string out = dir.file("out.svg"), victim = dir.file("victim");
+    write_text_file(victim, "keep");
+    REQUIRE(::symlink(victim.c_str(), (out + ".tmp").c_str()) == 0);
+    write_text_file(out, "new");  // before: wrote "new" into the victim through out.svg.tmp
+    CHECK(read_text(victim) == "keep");
+    CHECK(read_text(out) == "new");
+    CHECK(S_ISLNK(mode_of(out + ".tmp")));
+    const std::string link = dir.file("link.svg");
+    REQUIRE(::symlink(victim.c_str(), link.c_str()) == 0);
+    CHECK(contains(error_of([&] { write_text_file(link, "x"); }), "link.svg: is a symbolic link"));
+    CHECK(read_text(victim) == "keep");
+    CHECK(S_ISLNK(mode_of(link)));
+}
+
+TEST_CASE("trust: a read-only output is refused; an existing output keeps its mode") {
+    TempDir dir;
+    const std::string out = dir.file("model.safetensors");
+    write_text_file(out, "old");
+    REQUIRE(::chmod(out.c_str(), 0444) == 0);
+    // Before: silently replaced, mode reset to 0644 (root passes access(W_OK): the mode decides).
+    CHECK(contains(error_of([&] { write_text_file(out, "new"); }), "is read-only"));
+    CHECK(read_text(out) == "old");
+    REQUIRE(::chmod(out.c_str(), 0640) == 0);
+    write_text_file(out, "new");
+    CHECK(read_text(out) == "new");
+    CHECK((mode_of(out) & 07777) == 0640);
+    // No temporary or lock file is left behind.
+    CHECK(error_of([&] { read_text(out + ".lock"); }) != "");
+}
+
+TEST_CASE("trust: a second run writing the same output is told that another run writes it") {
+    TempDir dir;
+    const std::string out = dir.file("model.safetensors");
+    OutputLock held(out);          // this process: the run that writes it
+    write_text_file(out, "mine");  // locks on one output nest within a process
+    // Before: both runs shared out.tmp; one died after its work, or one result silently won.
+    const std::string r = in_child([&] { write_text_file(out, "theirs"); });
+    CHECK(contains(r, "model.safetensors: another run is writing it"));
+    CHECK(read_text(out) == "mine");
+    const std::string r2 = in_child([&] { OutputLock again(out); });
+    CHECK(contains(r2, "another run is writing it"));
+}
+
+TEST_CASE("trust: released, the lock lets the next run write; its lock file is gone") {
+    TempDir dir;
+    const std::string out = dir.file("demos.bin");
+    { OutputLock held(out); }
+    CHECK(in_child([&] { write_text_file(out, "next"); }) == "ok");
+    CHECK(read_text(out) == "next");
+    struct stat sb;
+    CHECK(::lstat((out + ".lock").c_str(), &sb) != 0);
+}
+
+TEST_CASE("trust: a write the disk refuses is an EnvironmentError and leaves the old file") {
+    TempDir dir;
+    const std::string out = dir.file("big.csv");
+    write_text_file(out, "old");
+    // RLIMIT_FSIZE stands in for a full disk: write() fails (EFBIG) part-way.
+    const std::string r = in_child([&] {
+        std::signal(SIGXFSZ, SIG_IGN);
+        rlimit lim{1000, 1000};
+        ::setrlimit(RLIMIT_FSIZE, &lim);
+        write_text_file(out, std::string(100000, 'x'));
+    });
+    CHECK(contains(r, "environment: "));
+    CHECK(contains(r, "write failed"));
+    CHECK(read_text(out) == "old");
+    DIR* d = opendir(dir.path.c_str());
+    int files = 0;
+    while (dirent* e = readdir(d)) files += e->d_name[0] != '.';
+    closedir(d);
+    CHECK(files == 1);  // no temporary file left
+}
+
+TEST_CASE("trust: train --data X --out X is refused naming both flags") {
+    TempDir dir;
+    const std::string data = dir.file("demos.bin");
+    save_demos(data, one_episode());
+    Args a({"--data", data, "--out", data});
+    const std::string e = error_of([&] { madbp_cli::claim_outputs(a, {{"--out", data}}, {".train"}); });
+    CHECK(contains(e, "--out " + data + " is the same file as --data " + data));
+    // Another spelling of the same file, or an input that is a run's sidecar.
+    Args b({"--data", dir.path + "/./demos.bin", "--out", dir.file("demos")});
+    CHECK(contains(error_of([&] { madbp_cli::claim_outputs(b, {{"--out", dir.file("demos")}}, {".bin"}); }), "is the same file as --data"));
+    Args c({"--data", data, "--out", dir.file("model")});
+    CHECK(error_of([&] { madbp_cli::claim_outputs(c, {{"--out", dir.file("model")}}, {".train"}); }) == "");
+}
+
+TEST_CASE("trust: results written to a full or closed stdout are an EnvironmentError") {
+    FILE* full = std::fopen("/dev/full", "w");
+    REQUIRE(full != nullptr);
+    std::fprintf(full, "method map n success\n");
+    bool environment = false;
+    try {
+        madbp_cli::check_written(full);
+    } catch (const EnvironmentError& e) {
+        environment = contains(e.what(), "cannot write the results to standard output");
+    }
+    CHECK(environment);
+    std::fclose(full);
+}
