@@ -948,9 +948,11 @@ public:
     // Restores the run from <out>.train and returns its step: every identity field must equal
     // this run's (the error names the first that differs), then the weights, state, Adam, EMA,
     // RNG streams and the curve rows up to that step come back. The file's metadata stays in
-    // `resumed` for a trainer's own fields.
+    // `resumed` for a trainer's own fields (resumed_numbers). A state past this run's
+    // `last_step` (a summary and no model, before) or whose Adam step is not `adam_per_step`
+    // updates per step is refused (std::invalid_argument, std::runtime_error).
     std::map<std::string, std::string> resumed;
-    long resume() {
+    long resume(long last_step, long adam_per_step = 1) {
         const SafeTensors st = load_safetensors(state_path());
         resumed = st.metadata;
         for (auto& kv : identity_) {
@@ -968,8 +970,29 @@ public:
         if (s.empty() || s.size() > 18 || s.find_first_not_of("0123456789") != std::string::npos)
             throw std::runtime_error(state_path() + ": __metadata__['train.step'] = '" + s + "' is not a step count");
         const long step = std::stol(s);
+        if (step > last_step)
+            throw std::invalid_argument(state_path() + ": the training state is at step " + s + ", past this run's last step " +
+                                        std::to_string(last_step) + " (--steps / --iterations): ask for at least " + s +
+                                        " to continue it, or write another --out");
+        if (adam_.step != step * adam_per_step)
+            throw std::runtime_error(state_path() + ": __metadata__['optim.adam.step'] = " + std::to_string(adam_.step) +
+                                     " does not match train.step = " + s + " (" + std::to_string(adam_per_step) +
+                                     " optimizer updates per step): the file is inconsistent");
         curve.read_csv(csv_path(), step);
         return step;
+    }
+    // `count` finite numbers from the resumed metadata's `key` (a trainer's smoothed losses);
+    // std::runtime_error naming the file and the key otherwise.
+    std::vector<double> resumed_numbers(const std::string& key, int count) const {
+        auto it = resumed.find(key);
+        std::stringstream ss(it == resumed.end() ? std::string() : it->second);
+        std::vector<double> v((size_t)count);
+        for (double& x : v)
+            if (!(ss >> x) || !std::isfinite(x)) ss.setstate(std::ios::failbit);
+        std::string rest;
+        if (!ss || (ss >> rest))
+            throw std::runtime_error(state_path() + ": __metadata__['" + key + "'] is not " + std::to_string(count) + " finite numbers");
+        return v;
     }
     // Writes <out>.train (identity, step and `metadata` in its header) and <out>.csv.
     void save(long step, std::map<std::string, std::string> metadata) const {
@@ -1083,10 +1106,9 @@ inline TrainReport train(const DemoSet& demos, MadbpModel& model, const TrainCon
     long step = 0;
     LossTerms smooth;  // exponentially smoothed training losses (in the state file: the curve continues exactly)
     if (tc.resume) {
-        step = state.resume();
-        if (std::sscanf(state.resumed["train.smooth"].c_str(), "%lf %lf %lf %lf %lf", &smooth.total, &smooth.noise, &smooth.boundary,
-                        &smooth.temporal, &smooth.collision) != 5)
-            throw std::runtime_error(state.state_path() + ": __metadata__['train.smooth'] is not five numbers");
+        step = state.resume(tc.steps);
+        const std::vector<double> sm = state.resumed_numbers("train.smooth", 5);
+        smooth.total = sm[0], smooth.noise = sm[1], smooth.boundary = sm[2], smooth.temporal = sm[3], smooth.collision = sm[4];
     }
     if (ema.shadow.size() != model.params->size()) ema.shadow = model.params->value;
 
@@ -1889,8 +1911,11 @@ inline MappoReport train_mappo(const MappoConfig& c, MappoNet* result = nullptr)
                      {"iteration", "env_steps", "seconds", "success", "episode_return", "policy_loss", "value_loss", "entropy",
                       "approx_kl", "clip_fraction"});
     if (c.resume) {
-        iteration = state.resume();
-        seconds_before = std::atof(state.resumed["mappo.seconds"].c_str());
+        // Adam updates per iteration: one per non-empty minibatch (the rollout's S samples in
+        // c.minibatches parts) of each epoch.
+        const long samples = (long)WorldConfig{}.max_steps * c.worlds * c.agents;
+        iteration = state.resume(c.iterations, (long)c.epochs * std::min<long>(c.minibatches, samples));
+        seconds_before = state.resumed_numbers("mappo.seconds", 1)[0];
     }
     const int n = c.agents, W = c.worlds, O = kMappoObs;
     WorldConfig wc;
@@ -2686,10 +2711,10 @@ inline MadiffReport train_madiff(const DemoSet& demos, MadiffConfig mc, const Ma
                      {"step", "seconds", "loss", "diffusion", "inverse"});
     MadiffLoss smooth;  // exponentially smoothed (in the state file: the curve continues exactly)
     if (tc.resume) {
-        step = state.resume();
-        seconds_before = std::atof(state.resumed["madiff.seconds"].c_str());
-        if (std::sscanf(state.resumed["madiff.smooth"].c_str(), "%lf %lf %lf", &smooth.total, &smooth.diffusion, &smooth.inverse) != 3)
-            throw std::runtime_error(state.state_path() + ": __metadata__['madiff.smooth'] is not three numbers");
+        step = state.resume(tc.steps);
+        seconds_before = state.resumed_numbers("madiff.seconds", 1)[0];
+        const std::vector<double> sm = state.resumed_numbers("madiff.smooth", 3);
+        smooth.total = sm[0], smooth.diffusion = sm[1], smooth.inverse = sm[2];
     }
     if (ema.shadow.size() != model.params->size()) ema.shadow = model.params->value;
     const auto t_start = std::chrono::steady_clock::now();

@@ -159,3 +159,74 @@ TEST_CASE("trust: results written to a full or closed stdout are an EnvironmentE
     CHECK(environment);
     std::fclose(full);
 }
+
+namespace {
+// A two-step training run of the tiny model into `out` (its .train, .csv beside it).
+TrainConfig tiny_run(const std::string& out, long steps) {
+    TrainConfig tc;
+    tc.out = out;
+    tc.steps = steps;
+    tc.batch = 2;
+    tc.threads = 1;
+    tc.checkpoint_every = 1;
+    tc.log_every = 1;
+    tc.val_batches = 1;
+    return tc;
+}
+// The state file of `out` with `changes` in its metadata.
+void edit_state(const std::string& out, const std::map<std::string, std::string>& changes) {
+    SafeTensors st = load_safetensors(out + ".train");
+    for (auto& kv : changes) st.metadata[kv.first] = kv.second;
+    save_safetensors(out + ".train", st.tensors, st.metadata);
+}
+}  // namespace
+
+TEST_CASE("trust: a training state past --steps is an error, not a summary without a model") {
+    TempDir dir;
+    const std::string out = dir.file("m.safetensors");
+    const DemoSet demos = one_episode();
+    MadbpModel model(tiny_config(), 1);
+    train(demos, model, tiny_run(out, 2));
+    TrainConfig again = tiny_run(out, 2);
+    again.resume = true;
+    MadbpModel m2(tiny_config(), 1);
+    CHECK(train(demos, m2, again).steps == 2);  // at its last step: nothing left to do, fine
+    // The state of a longer run with this one's identity (the identity holds --steps for
+    // MA-DBP and MADiff; a MAPPO run may ask for fewer iterations).
+    edit_state(out, {{"train.step", "5"}, {"optim.adam.step", "5"}});
+    CHECK_THROWS_WITH_AS(train(demos, m2, again), doctest::Contains("m.safetensors.train: the training state is at step 5, past this run's last step 2"),
+                         std::invalid_argument);
+}
+
+TEST_CASE("trust: inconsistent optimiser state (Adam step != train step, NaN smoothing) is refused on resume") {
+    TempDir dir;
+    const std::string out = dir.file("m.safetensors");
+    const DemoSet demos = one_episode();
+    MadbpModel model(tiny_config(), 1);
+    train(demos, model, tiny_run(out, 2));
+    TrainConfig again = tiny_run(out, 2);
+    again.resume = true;
+    edit_state(out, {{"optim.adam.step", "7"}});
+    MadbpModel m2(tiny_config(), 1);
+    CHECK(contains(error_of([&] { train(demos, m2, again); }), "'optim.adam.step'] = 7 does not match train.step = 2"));
+    edit_state(out, {{"optim.adam.step", "2"}, {"train.smooth", "nan 0 0 0 0"}});
+    CHECK(contains(error_of([&] { train(demos, m2, again); }), "'train.smooth'] is not 5 finite numbers"));
+    edit_state(out, {{"train.smooth", "1 1 1 1 1"}});
+    CHECK(train(demos, m2, again).steps == 2);
+}
+
+TEST_CASE("trust: mappo --resume with fewer --iterations than its state is an error") {
+    TempDir dir;
+    MappoConfig c;
+    c.out = dir.file("p.safetensors");
+    c.iterations = 2;
+    c.worlds = 1;
+    c.threads = 1;
+    c.checkpoint_every = 1;
+    train_mappo(c);
+    c.resume = true;
+    c.iterations = 1;
+    CHECK(contains(error_of([&] { train_mappo(c); }), "the training state is at step 2, past this run's last step 1"));
+    c.iterations = 3;
+    CHECK(train_mappo(c).iterations == 3);  // the Adam step count matches epochs x minibatches per iteration
+}
