@@ -1576,11 +1576,13 @@ inline std::vector<uint8_t> serialize_safetensors(const std::vector<NamedTensor>
 }
 
 // The bytes of `path` (a regular file or a pipe). A directory, a device (/dev/zero) or a file
-// of more than `max_bytes` is refused before reading (std::runtime_error naming `limit`).
+// of more than `max_bytes` is refused before reading (std::runtime_error naming `limit`), one
+// that does not start with `magic` (when given; `kind` names the format) after its first bytes.
 inline std::vector<uint8_t> read_file(const std::string& path, uint64_t max_bytes = kMaxCheckpointBytes,
-                                      const std::string& limit = "kMaxCheckpointBytes") {
+                                      const std::string& limit = "kMaxCheckpointBytes", const std::string& magic = "",
+                                      const std::string& kind = "") {
     std::vector<uint8_t> bytes;
-    detail::read_bounded(path, max_bytes, limit, bytes);
+    detail::read_bounded(path, max_bytes, limit, bytes, magic, kind);
     return bytes;
 }
 

@@ -1113,9 +1113,12 @@ inline Scene parse_scene(const std::string& text, const std::string& source = "s
 namespace detail {
 // Reads the whole of `path` (a regular file or a pipe) into `out` (std::string or
 // std::vector<uint8_t>). Refuses a directory or a device, and a file of more than `max_bytes`
-// (`limit` names the limit), before reading it; std::runtime_error naming the path otherwise.
+// (`limit` names the limit), before reading it; a file that does not start with `magic`
+// (when given) after its first bytes, not after max_bytes of a pipe; std::runtime_error
+// naming the path otherwise.
 template <class Bytes>
-inline void read_bounded(const std::string& path, uint64_t max_bytes, const std::string& limit, Bytes& out) {
+inline void read_bounded(const std::string& path, uint64_t max_bytes, const std::string& limit, Bytes& out,
+                         const std::string& magic = "", const std::string& kind = "") {
     const int fd = ::open(path.c_str(), O_RDONLY | O_CLOEXEC);
     if (fd < 0) throw std::runtime_error(path + ": cannot open: " + std::strerror(errno));
     struct FdCloser { int fd; ~FdCloser() { ::close(fd); } } closer{fd};
@@ -1137,7 +1140,10 @@ inline void read_bounded(const std::string& path, uint64_t max_bytes, const std:
         if (got < 0) throw std::runtime_error(path + ": read failed: " + std::strerror(errno));
         if (got == 0) break;
         if (out.size() + (uint64_t)got > max_bytes) throw too_big(out.size() + (uint64_t)got);
+        const bool was_short = out.size() < magic.size();
         out.insert(out.end(), buf, buf + got);
+        if (was_short && out.size() >= magic.size() && !std::equal(magic.begin(), magic.end(), out.begin()))
+            throw std::runtime_error(path + ": not a " + kind + " (magic '" + magic + "' missing)");
     }
 }
 }  // namespace detail

@@ -405,9 +405,11 @@ inline DemoSet parse_demos(const uint8_t* data, size_t size, const std::string& 
     validate_demos(set, kMaxDatasetAgents, path);
     return set;
 }
-// Reads a dataset file (at most kMaxDatasetBytes; a directory or device is refused).
+// Reads a dataset file (at most kMaxDatasetBytes; a directory or device is refused; the
+// signature is checked after the first bytes, so `yes | madbp train --data /dev/stdin` stops
+// there instead of reading 1 GiB).
 inline DemoSet load_demos(const std::string& path) {
-    const std::vector<uint8_t> bytes = read_file(path, kMaxDatasetBytes, "kMaxDatasetBytes");
+    const std::vector<uint8_t> bytes = read_file(path, kMaxDatasetBytes, "kMaxDatasetBytes", "MADBPDS1", "madbp dataset");
     return parse_demos(bytes.data(), bytes.size(), path);
 }
 

@@ -5,6 +5,7 @@
 #include "methods.hpp"  // the tool's Args, claim_outputs, check_written
 
 #include <csignal>
+#include <thread>
 #include <fcntl.h>
 #include <sys/stat.h>
 
@@ -229,4 +230,23 @@ TEST_CASE("trust: mappo --resume with fewer --iterations than its state is an er
     CHECK(contains(error_of([&] { train_mappo(c); }), "the training state is at step 2, past this run's last step 1"));
     c.iterations = 3;
     CHECK(train_mappo(c).iterations == 3);  // the Adam step count matches epochs x minibatches per iteration
+}
+
+TEST_CASE("trust: yes | madbp train --data /dev/stdin stops at the signature, not after 1 GiB") {
+    // Before: the whole pipe was read up to kMaxDatasetBytes first (1.8 GB resident).
+    const std::string r = capped(64, [] {
+        int fds[2];
+        if (::pipe(fds) != 0) return std::string("no pipe");
+        std::signal(SIGPIPE, SIG_IGN);
+        std::thread yes([w = fds[1]] {
+            const std::string line(4096, 'y');
+            while (::write(w, line.data(), line.size()) > 0) {}
+            ::close(w);
+        });
+        std::string e = error_of([&] { load_demos("/proc/self/fd/" + std::to_string(fds[0])); });
+        ::close(fds[0]);  // the writer sees EPIPE and stops
+        yes.join();
+        return e;
+    });
+    CHECK(contains(r, "not a madbp dataset (magic 'MADBPDS1' missing)"));
 }
