@@ -1071,6 +1071,12 @@ inline std::map<std::string, std::string> train_identity(const DemoSet& demos, c
 inline TrainReport train(const DemoSet& demos, MadbpModel& model, const TrainConfig& tc) {
     const ModelConfig& mc = model.config;
     if (demos.episodes.empty()) throw std::invalid_argument("train: the dataset has no episodes");
+    float weight_sum = 0;
+    for (float w : tc.loss_weights) {
+        if (!(w >= 0 && std::isfinite(w))) throw std::invalid_argument("train: loss_weights must be finite and >= 0");
+        weight_sum += w;
+    }
+    if (!(weight_sum > 0)) throw std::invalid_argument("train: loss_weights are all 0: there is nothing to train");
     if (tc.batch < 1 || tc.steps < 1) throw std::invalid_argument("train: batch and steps must be >= 1");
     if (tc.log_every < 1 || tc.checkpoint_every < 1 || tc.val_batches < 1)
         throw std::invalid_argument("train: log_every, checkpoint_every and val_batches must be >= 1");

@@ -250,3 +250,65 @@ TEST_CASE("trust: yes | madbp train --data /dev/stdin stops at the signature, no
     });
     CHECK(contains(r, "not a madbp dataset (magic 'MADBPDS1' missing)"));
 }
+
+namespace {
+// The message reading `key` from `args` with `read` throws ("" when it returns).
+std::string flag_error(std::vector<std::string> args, const std::function<void(Args&)>& read) {
+    Args a(args);
+    return error_of([&] { read(a); });
+}
+}  // namespace
+
+TEST_CASE("trust: a trailing or empty list item (--agents 2, --maps empty, --channels 32,) is an error") {
+    auto agents = [](Args& a) { a.integers("--agents", "2,4,6", 1, 64); };
+    CHECK(contains(flag_error({"--agents", "2,"}, agents), "--agents: empty item in '2,'"));
+    CHECK(contains(flag_error({"--agents", ",2"}, agents), "empty item"));
+    CHECK(contains(flag_error({"--agents", "2,,4"}, agents), "empty item"));
+    CHECK(flag_error({"--agents", "2,4"}, agents) == "");
+    CHECK(contains(error_of([] { madbp_cli::split("empty,", "--maps"); }), "--maps: empty item in 'empty,'"));
+    CHECK(contains(error_of([] { madbp_cli::parse_scenario_mix("swap:0.2,"); }), "--scenarios: empty item"));
+}
+
+TEST_CASE("trust: a flag given twice is an error naming it, except a repeatable one read with all()") {
+    CHECK(contains(flag_error({"--episodes", "5", "--episodes", "7"}, [](Args& a) { a.integer("--episodes", 1); }),
+                   "--episodes: given 2 times; give it once"));
+    CHECK(contains(flag_error({"--json", "--json"}, [](Args& a) { a.flag("--json"); }), "--json: given 2 times"));
+    CHECK(contains(flag_error({"--out=a", "--out", "b"}, [](Args& a) { a.str("--out", ""); }), "--out: given 2 times"));
+    Args a({"--set", "a.b=1", "--set", "c.d=2"});
+    CHECK(a.all("--set") == std::vector<std::string>{"a.b=1", "c.d=2"});
+    CHECK(error_of([&] { a.finish(); }) == "");
+}
+
+TEST_CASE("trust: range errors print the range; 1e309 and 10^23 are out of range, not 'not a number'") {
+    auto half = [](Args& a) { a.real("--half-size", 1.2, 0.6, 100); };
+    CHECK(contains(flag_error({"--half-size", "500"}, half), "--half-size: 500 is out of range [0.6, 100]"));
+    CHECK(contains(flag_error({"--half-size", "1e309"}, half), "--half-size: 1e309 is out of range [0.6, 100]"));
+    CHECK(contains(flag_error({"--half-size", "abc"}, half), "expected a number"));
+    auto episodes = [](Args& a) { a.integer("--episodes", 1, 1, 1000000); };
+    CHECK(contains(flag_error({"--episodes", "100000000000000000000000"}, episodes), "is out of range [1, 1000000]"));
+    CHECK(contains(flag_error({"--episodes", "4000000000"}, episodes), "4000000000 is out of range [1, 1000000]"));
+    CHECK(contains(flag_error({"--weights", "1,1e309"}, [](Args& a) { a.reals("--weights", "", 0, 1e6); }), "1e309 is out of range [0, 1e+06]"));
+}
+
+TEST_CASE("trust: escape bytes and 100 KB values are escaped and cut in messages") {
+    const std::string evil = "a\033[2J\033]0;owned\007b";
+    const std::string e = flag_error({"--episodes", evil}, [](Args& a) { a.integer("--episodes", 1); });
+    CHECK(contains(e, "a\\x1b[2J\\x1b]0;owned\\x07b"));
+    CHECK(e.find('\033') == std::string::npos);
+    const std::string big(100000, 'x');
+    const std::string e2 = flag_error({"--agents", big}, [](Args& a) { a.integers("--agents", "2", 1, 64); });
+    CHECK(e2.size() < 200);
+    CHECK(contains(e2, "..."));
+    CHECK(contains(flag_error({"--bogus\033", "1"}, [](Args& a) { a.finish(); }), "unknown option --bogus\\x1b"));
+}
+
+TEST_CASE("trust: an empty dataset names its file; all-zero loss weights are refused") {
+    TempDir dir;
+    const std::string path = dir.file("none.bin");
+    save_demos(path, DemoSet{});
+    CHECK(contains(error_of([&] { madbp_cli::load_training_data(path, 6); }), "none.bin: the dataset has no episodes"));
+    TrainConfig tc = tiny_run(dir.file("m"), 1);
+    tc.loss_weights = {0, 0, 0, 0};
+    MadbpModel model(tiny_config(), 1);
+    CHECK(contains(error_of([&] { train(one_episode(), model, tc); }), "loss_weights are all 0"));
+}

@@ -26,6 +26,9 @@ using namespace madbp_cli;
 
 namespace {
 
+// An error line longer than this is cut (a 100 KB flag value is not echoed whole).
+constexpr size_t kMaxMessageBytes = 1000;
+
 // render records every frame of the episode: its step limit bounds the log and the SVG.
 constexpr int kMaxRenderSteps = 10000;
 
@@ -337,6 +340,12 @@ void usage(FILE* f) {
     std::fprintf(f, "\nEvery subcommand takes --help, --seed and --json.\n");
 }
 
+// The one line of an error. Every message passes through madbp::printable: a value a message
+// quotes (a flag's, a file's) reaches the terminal without its escape bytes and cut short.
+void report_error(const std::string& subcommand, const std::exception& e) {
+    std::fprintf(stderr, "madbp %s: %s\n", madbp::printable(subcommand).c_str(), madbp::printable(e.what(), kMaxMessageBytes).c_str());
+}
+
 }  // namespace
 
 int main(int argc, char** argv) {
@@ -355,10 +364,10 @@ int main(int argc, char** argv) {
         }
         throw std::invalid_argument("unknown subcommand '" + madbp::printable(name) + "' (try madbp --help)");
     } catch (const madbp::EnvironmentError& e) {  // disk full, lost stdout: one line, exit code 1
-        std::fprintf(stderr, "madbp %s: %s\n", madbp::printable(name).c_str(), e.what());
+        report_error(name, e);
         return 1;
     } catch (const std::exception& e) {  // bad flags, files, maps: one line, exit code 2
-        std::fprintf(stderr, "madbp %s: %s\n", madbp::printable(name).c_str(), e.what());
+        report_error(name, e);
         return 2;
     }
 }

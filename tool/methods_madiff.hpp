@@ -101,7 +101,7 @@ inline int cmd_madiff(Args& a) {
         const auto t0 = std::chrono::steady_clock::now();
         tc.keep_going = [t0, budget](long) { return std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count() < budget; };
     }
-    const madbp::DemoSet demos = madbp::load_demos(data);
+    const madbp::DemoSet demos = load_training_data(data, madbp::kMaxDatasetAgents);
     const size_t slash = tc.out.find_last_of('/');
     if (slash != std::string::npos && slash > 0) ::mkdir(tc.out.substr(0, slash).c_str(), 0755);  // e.g. models/madiff; exists: fine
     const auto locks = claim_outputs(a, {{"--out", tc.out}}, {".train", ".csv"});
