@@ -1715,6 +1715,10 @@ enum class SceneFrame { World, Local };
 // Limits of ModelConfig::validate beyond each field's range (docs/limits.md): the U-Net kernel,
 // and the temporal attention's scores per agent (heads x horizon^2 floats of workspace).
 constexpr int kMaxKernel = 255;
+// A model's lengths in world units (position_scale, window_scale, local_extent, subgoal_distance)
+// lie in [kMinModelLength, kMaxModelLength] (subgoal_distance may be 0: off); the shipped models
+// use 0.28 to 2.4. A checkpoint outside (1e30, 1e-30) makes a planner that never succeeds.
+constexpr double kMinModelLength = 1e-3, kMaxModelLength = 1e3;
 constexpr long kMaxAttentionScores = 1L << 24;
 
 struct ModelConfig {
@@ -1762,7 +1766,12 @@ struct ModelConfig {
         if (n_max < 1 || n_max > 1024) bad("n_max", "must be in [1, 1024]");
         if (grid < 8 || grid > 1024 || grid % 8) bad("grid", "must be a multiple of 8 in [8, 1024]");
         if (local_grid < 0 || local_grid % 4 || local_grid > 256) bad("local_grid", "must be 0 or a multiple of 4 up to 256");
-        if (!(local_extent > 0) || !std::isfinite(local_extent)) bad("local_extent", "must be positive");
+        auto length = [&](const char* f, double v, bool zero_ok) {
+            if (!(v >= kMinModelLength && v <= kMaxModelLength) && !(zero_ok && v == 0))
+                bad(f, number_text(v) + " is outside [kMinModelLength, kMaxModelLength] = [" + number_text(kMinModelLength) + ", " +
+                           number_text(kMaxModelLength) + "] world units" + (zero_ok ? " (0: off)" : ""));
+        };
+        length("local_extent", local_extent, false);
         if (kernel < 1 || kernel % 2 == 0 || kernel > kMaxKernel)
             bad("kernel", std::to_string(kernel) + " must be odd and in [1, kMaxKernel = " + std::to_string(kMaxKernel) + "]");
         if ((long)heads * horizon * horizon > kMaxAttentionScores)
@@ -1771,9 +1780,9 @@ struct ModelConfig {
         if (waypoint_stride < 1 || waypoint_stride > 16) bad("waypoint_stride", "must be in [1, 16]");
         if (diffusion_steps < 2 || diffusion_steps > 100000) bad("diffusion_steps", "must be in [2, 100000]");
         if (sample_steps < 1 || sample_steps > diffusion_steps) bad("sample_steps", "must be in [1, diffusion_steps]");
-        if (!(position_scale > 0) || !std::isfinite(position_scale)) bad("position_scale", "must be positive");
-        if (!(window_scale > 0) || !std::isfinite(window_scale)) bad("window_scale", "must be positive");
-        if (!(subgoal_distance >= 0) || !std::isfinite(subgoal_distance)) bad("subgoal_distance", "must be a number >= 0");
+        length("position_scale", position_scale, false);
+        length("window_scale", window_scale, false);
+        length("subgoal_distance", subgoal_distance, true);
         if (n_train_max < 0 || n_train_max > n_max) bad("n_train_max", "must be in [0, n_max]");
     }
     std::map<std::string, std::string> to_metadata() const {

@@ -124,6 +124,7 @@ constexpr int kMaxAgentId = (1 << 30) - 1;     // largest agent id World::add_ag
 constexpr int kExpertMaxGridSide = 192;        // guided expert: planning grid side, cells (coarser cells beyond)
 constexpr int kExpertMaxHorizon = 256;         // guided expert: world steps planned ahead (plus extra_horizon)
 constexpr double kMaxSvgPixels = 4096;         // side of a rendered picture, pixels (larger worlds are drawn smaller)
+constexpr double kMaxSceneCoordinate = 1000;   // |number| of a scene's disc or box (10 x kMaxHalfSize)
 
 // `s` for an error message: bytes outside printable ASCII as \xNN (a NUL no longer cuts the
 // message short), at most `max` input bytes, then "...".
@@ -305,6 +306,11 @@ inline bool inside_obstacle(const WorldMap& map, Vec2 p) {
 // (5 discs at 1.2, 20 at 2.4) so density stays the same; the barrier always spans the
 // world with one gap of width 0.5. Throws std::invalid_argument on an unknown name, a
 // half_size above kMaxHalfSize, or more than kMaxObstacles discs (obstacles beyond ~34).
+// The names make_map knows (case-sensitive).
+inline const std::vector<std::string>& map_names() {
+    static const std::vector<std::string> names = {"empty", "obstacles", "barrier"};
+    return names;
+}
 inline WorldMap make_map(const std::string& name, Rng& rng, double half_size = 1.2) {
     if (!(half_size > 0.5) || !std::isfinite(half_size))
         throw std::invalid_argument("half_size: must be a finite number > 0.5 (got " + std::to_string(half_size) + ")");
@@ -1075,12 +1081,24 @@ inline Scene parse_scene(const std::string& text, const std::string& source = "s
             world_seen = true;
         } else if (kw != "agent" && scene.map.discs.size() + scene.map.boxes.size() >= (size_t)kMaxObstacles) {
             fail(line_no, "more than kMaxObstacles = " + std::to_string(kMaxObstacles) + " discs and boxes");
-        } else if (kw == "disc") {
-            if (!(v[2] > 0)) fail(line_no, "disc radius must be > 0");
-            scene.map.discs.push_back({{v[0], v[1]}, v[2]});
-        } else if (kw == "box") {
-            if (!(v[0] < v[2] && v[1] < v[3])) fail(line_no, "box needs x0 < x1 and y0 < y1");
-            scene.map.boxes.push_back({{v[0], v[1]}, {v[2], v[3]}});
+        } else if (kw == "disc" || kw == "box") {
+            // Plausible obstacles: bounded numbers (a 1e308 box was drawn at -inf) that reach
+            // into the world (one wholly outside it is a mistake in the file, not a wall).
+            for (size_t k = 0; k < want; ++k)
+                if (std::fabs(v[k]) > kMaxSceneCoordinate)
+                    fail(line_no, "'" + printable(tok[k + 1]) + "' exceeds the limit kMaxSceneCoordinate = " + number_text(kMaxSceneCoordinate));
+            const double h = scene.map.half_size;
+            if (kw == "disc") {
+                if (!(v[2] > 0)) fail(line_no, "disc radius must be > 0");
+                if (std::fabs(v[0]) - v[2] >= h || std::fabs(v[1]) - v[2] >= h)
+                    fail(line_no, "disc lies wholly outside the world (half-size " + number_text(h) + ")");
+                scene.map.discs.push_back({{v[0], v[1]}, v[2]});
+            } else {
+                if (!(v[0] < v[2] && v[1] < v[3])) fail(line_no, "box needs x0 < x1 and y0 < y1");
+                if (v[2] <= -h || v[0] >= h || v[3] <= -h || v[1] >= h)
+                    fail(line_no, "box lies wholly outside the world (half-size " + number_text(h) + ")");
+                scene.map.boxes.push_back({{v[0], v[1]}, {v[2], v[3]}});
+            }
         } else {
             if (scene.starts.size() >= (size_t)kMaxSceneAgents)
                 fail(line_no, "more than kMaxSceneAgents = " + std::to_string(kMaxSceneAgents) + " agents");

@@ -213,6 +213,11 @@ inline DemoSet collect_demonstrations(const CollectConfig& c, const Demonstrator
 constexpr uint64_t kMaxDatasetBytes = 1ull << 30;  // 1 GiB (the shipped model's dataset is ~60 MB)
 constexpr int kMaxDatasetAgents = 1024;
 constexpr int kMaxDatasetSteps = 100000;
+// Plausible motion: every velocity's speed <= kMaxDatasetSpeed world units per second (full
+// force gives at most 0.57; contacts push harder for a step, far below this), every action
+// component within the world's action bound kMaxDatasetAction (WorldConfig::max_action).
+constexpr double kMaxDatasetSpeed = 10;
+constexpr double kMaxDatasetAction = 1;
 namespace detail {
 struct ByteWriter {
     std::vector<uint8_t> bytes;
@@ -327,12 +332,20 @@ inline void validate_demos(const DemoSet& set, int n_max = kMaxDatasetAgents, co
         };
         check_points(d.goals, "goals");
         check_points(d.pos, "pos");
-        auto check_finite = [&](const std::vector<Vec2>& v, const char* field) {
-            for (size_t k = 0; k < v.size(); ++k)
-                if (!std::isfinite(v[k].x) || !std::isfinite(v[k].y)) fail(std::string(field) + "[" + std::to_string(k) + "] is not finite");
-        };
-        check_finite(d.vel, "vel");
-        check_finite(d.act, "act");
+        for (size_t k = 0; k < d.vel.size(); ++k)
+            if (!(norm(d.vel[k]) <= kMaxDatasetSpeed))
+                fail("vel[" + std::to_string(k) + "] = " + point(d.vel[k]) + ": speed above kMaxDatasetSpeed = " + num(kMaxDatasetSpeed));
+        const double act_lim = kMaxDatasetAction * (1 + 1e-6);  // stored as f32
+        for (size_t k = 0; k < d.act.size(); ++k)
+            if (!(std::fabs(d.act[k].x) <= act_lim && std::fabs(d.act[k].y) <= act_lim))
+                fail("act[" + std::to_string(k) + "] = " + point(d.act[k]) + " outside the action bound kMaxDatasetAction = " + num(kMaxDatasetAction));
+        const std::string base = d.map_name.substr(0, d.map_name.find('/'));
+        const std::string scenario = base.size() < d.map_name.size() ? d.map_name.substr(base.size() + 1) : "";
+        const auto& maps = map_names();
+        const auto& scenarios = interaction_scenarios();
+        if (std::find(maps.begin(), maps.end(), base) == maps.end() ||
+            (base.size() < d.map_name.size() && std::find(scenarios.begin(), scenarios.end(), scenario) == scenarios.end()))
+            fail("map name '" + printable(d.map_name) + "' is not MAP or MAP/SCENARIO (maps: empty, obstacles, barrier; case-sensitive)");
     }
 }
 
@@ -2188,6 +2201,9 @@ namespace madbp {
 constexpr const char* kMadiffFormat = "madiff";
 
 // Architecture and sampling defaults of a MADiff model; stored in the checkpoint.
+// |norm.lo|, |norm.hi| of a MADiff checkpoint: its observations are scaled to about +-1.7.
+constexpr double kMaxMadiffLimit = 1e3;
+
 struct MadiffConfig {
     std::string map = "empty";           // map the model was trained on (recorded, not enforced)
     int agents = 2;                      // n, the fixed team size, in [1, 64]
@@ -2364,6 +2380,16 @@ public:
         params->state_vec(lo_, kMappoObs) = lo;
         params->state_vec(hi_, kMappoObs) = hi.array().max(lo.array() + 1e-3f).matrix();
     }
+    // Refuses limits a checkpoint holds that no training data gives: lo < hi per feature, both
+    // finite within +-kMaxMadiffLimit (swapped limits flip every observation: 413 collisions).
+    void check_limits(const std::string& source) const {
+        const auto lo = params->state_vec(lo_, kMappoObs), hi = params->state_vec(hi_, kMappoObs);
+        for (int i = 0; i < kMappoObs; ++i)
+            if (!(lo[i] < hi[i] && std::fabs(lo[i]) <= kMaxMadiffLimit && std::fabs(hi[i]) <= kMaxMadiffLimit))
+                throw std::runtime_error(source + ": norm.lo[" + std::to_string(i) + "] = " + number_text(lo[i]) + ", norm.hi[" +
+                                         std::to_string(i) + "] = " + number_text(hi[i]) + ": needs lo < hi within +-kMaxMadiffLimit = " +
+                                         number_text(kMaxMadiffLimit));
+    }
     // Scaled observations (O, N) -> [-1, 1] per feature, in place (values beyond the training
     // data's limits map beyond +-1).
     void normalize(Mat& obs) const {
@@ -2464,6 +2490,7 @@ inline MadiffModel madiff_from(const SafeTensors& st) {
     MadiffModel m(MadiffConfig::from_metadata(st));
     read_param_tensors(st, *m.params);
     if (!m.params->value.allFinite() || !m.params->state.allFinite()) throw std::runtime_error(st.source + ": a parameter is not finite");
+    m.check_limits(st.source);
     m.set_training(false);
     return m;
 }

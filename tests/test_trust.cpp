@@ -312,3 +312,73 @@ TEST_CASE("trust: an empty dataset names its file; all-zero loss weights are ref
     MadbpModel model(tiny_config(), 1);
     CHECK(contains(error_of([&] { train(one_episode(), model, tc); }), "loss_weights are all 0"));
 }
+
+TEST_CASE("trust: dataset velocities, actions and map names must be plausible") {
+    auto refused = [](const std::function<void(Demonstration&)>& change) {
+        DemoSet set = one_episode();
+        change(set.episodes[0]);
+        return error_of([&] { validate_demos(set); });
+    };
+    CHECK(refused([](Demonstration&) {}) == "");
+    // Before: 1e30 set MADiff's normaliser to 2.5e30; actions of 1e12 and "empTy" passed.
+    CHECK(contains(refused([](Demonstration& d) { d.vel[1] = {1e30, 0}; }), "vel[1] = (1e+30, 0): speed above kMaxDatasetSpeed = 10"));
+    CHECK(contains(refused([](Demonstration& d) { d.act[0] = {0, 1e12}; }), "act[0] = (0, 1e+12) outside the action bound kMaxDatasetAction = 1"));
+    CHECK(contains(refused([](Demonstration& d) { d.map_name = "empTy"; }), "map name 'empTy' is not MAP or MAP/SCENARIO"));
+    CHECK(contains(refused([](Demonstration& d) { d.map_name = "empty/sWap"; }), "map name 'empty/sWap'"));
+    CHECK(refused([](Demonstration& d) { d.map_name = "barrier/corridor"; }) == "");
+    CHECK(refused([](Demonstration& d) { d.act[0] = {1, -1}; }) == "");
+}
+
+TEST_CASE("trust: a MADiff checkpoint with swapped or huge norm.lo / norm.hi is refused") {
+    TempDir dir;
+    const std::string path = dir.file("madiff.safetensors");
+    MadiffConfig mc;
+    mc.channels = {8, 8};
+    mc.dim = 8;
+    mc.inv_hidden = 8;
+    mc.heads = 2;
+    MadiffModel model(mc);
+    Vec lo = Vec::Constant(kMappoObs, -1.5f), hi = Vec::Constant(kMappoObs, 1.5f);
+    model.set_limits(lo, hi);
+    save_madiff(path, model);
+    CHECK(error_of([&] { load_madiff(path); }) == "");
+    SafeTensors st = load_safetensors(path);
+    auto tensor = [&](const char* name) -> NamedTensor& {
+        for (NamedTensor& t : st.tensors)
+            if (t.name == name) return t;
+        FAIL("no tensor " << name);
+        return st.tensors[0];
+    };
+    std::swap(tensor("norm.lo").data, tensor("norm.hi").data);
+    save_safetensors(path, st.tensors, st.metadata);
+    CHECK(contains(error_of([&] { load_madiff(path); }), "norm.lo[0] = 1.5, norm.hi[0] = -1.5: needs lo < hi"));
+    std::swap(tensor("norm.lo").data, tensor("norm.hi").data);
+    tensor("norm.hi").data[3] = 2.5e30f;
+    save_safetensors(path, st.tensors, st.metadata);
+    CHECK(contains(error_of([&] { load_madiff(path); }), "norm.hi[3] = 2.5e+30: needs lo < hi within +-kMaxMadiffLimit = 1000"));
+}
+
+TEST_CASE("trust: checkpoint lengths (position_scale, local_extent, ...) of 1e30 or 1e-30 are refused") {
+    TempDir dir;
+    CHECK(error_of([&] { load_model(model_with(dir, "ok.safetensors", {})); }) == "");
+    for (const char* field : {"position_scale", "local_extent", "window_scale", "subgoal_distance"})
+        for (const char* value : {"1e30", "1e-30"}) {
+            const std::string e = error_of([&] { load_model(model_with(dir, "m.safetensors", {{field, value}})); });
+            CAPTURE(field);
+            CAPTURE(value);
+            CHECK(contains(e, std::string(field) + ": "));
+            CHECK(contains(e, "is outside [kMinModelLength, kMaxModelLength] = [0.001, 1000] world units"));
+        }
+    CHECK(error_of([&] { load_model(model_with(dir, "off.safetensors", {{"subgoal_distance", "0"}})); }) == "");
+}
+
+TEST_CASE("trust: scene obstacles wholly outside the world, or with numbers like 1e308, are refused") {
+    auto scene = [](const std::string& obstacle) {
+        return error_of([&] { parse_scene("madbp-scene 1\nworld 1.2\n" + obstacle + "\nagent 0 0 0.5 0.5\n", "s.scene"); });
+    };
+    CHECK(scene("box -0.1 -1.5 0.1 -1.0") == "");  // partly inside: a wall at the edge
+    CHECK(scene("disc 1.25 0 0.1") == "");
+    CHECK(contains(scene("box 5 5 6 6"), "s.scene:3: box lies wholly outside the world (half-size 1.2)"));
+    CHECK(contains(scene("disc 0 1.5 0.2"), "s.scene:3: disc lies wholly outside the world"));
+    CHECK(contains(scene("box 1e307 0 1e308 1"), "'1e307' exceeds the limit kMaxSceneCoordinate = 1000"));
+}
