@@ -180,16 +180,21 @@ void edit_state(const std::string& out, const std::map<std::string, std::string>
     for (auto& kv : changes) st.metadata[kv.first] = kv.second;
     save_safetensors(out + ".train", st.tensors, st.metadata);
 }
+// Trains the tiny model 2 steps into `out`; returns the config that resumes it.
+TrainConfig trained_two_steps(const std::string& out) {
+    MadbpModel model(tiny_config(), 1);
+    train(one_episode(), model, tiny_run(out, 2));
+    TrainConfig again = tiny_run(out, 2);
+    again.resume = true;
+    return again;
+}
 }  // namespace
 
 TEST_CASE("trust: a training state past --steps is an error, not a summary without a model") {
     TempDir dir;
     const std::string out = dir.file("m.safetensors");
     const DemoSet demos = one_episode();
-    MadbpModel model(tiny_config(), 1);
-    train(demos, model, tiny_run(out, 2));
-    TrainConfig again = tiny_run(out, 2);
-    again.resume = true;
+    const TrainConfig again = trained_two_steps(out);
     MadbpModel m2(tiny_config(), 1);
     CHECK(train(demos, m2, again).steps == 2);  // at its last step: nothing left to do, fine
     // The state of a longer run with this one's identity (the identity holds --steps for
@@ -203,10 +208,7 @@ TEST_CASE("trust: inconsistent optimiser state (Adam step != train step, NaN smo
     TempDir dir;
     const std::string out = dir.file("m.safetensors");
     const DemoSet demos = one_episode();
-    MadbpModel model(tiny_config(), 1);
-    train(demos, model, tiny_run(out, 2));
-    TrainConfig again = tiny_run(out, 2);
-    again.resume = true;
+    const TrainConfig again = trained_two_steps(out);
     edit_state(out, {{"optim.adam.step", "7"}});
     MadbpModel m2(tiny_config(), 1);
     CHECK(contains(error_of([&] { train(demos, m2, again); }), "'optim.adam.step'] = 7 does not match train.step = 2"));

@@ -366,6 +366,9 @@ int main(int argc, char** argv) {
     } catch (const madbp::EnvironmentError& e) {  // disk full, lost stdout: one line, exit code 1
         report_error(name, e);
         return 1;
+    } catch (const std::bad_alloc&) {  // the machine's memory, not the input (inputs are bounded)
+        std::fprintf(stderr, "madbp %s: out of memory\n", madbp::printable(name).c_str());
+        return 1;
     } catch (const std::exception& e) {  // bad flags, files, maps: one line, exit code 2
         report_error(name, e);
         return 2;
