@@ -384,3 +384,11 @@ TEST_CASE("trust: scene obstacles wholly outside the world, or with numbers like
     CHECK(contains(scene("disc 0 1.5 0.2"), "s.scene:3: disc lies wholly outside the world"));
     CHECK(contains(scene("box 1e307 0 1e308 1"), "'1e307' exceeds the limit kMaxSceneCoordinate = 1000"));
 }
+
+TEST_CASE("trust: 0 is no silent 'default' for madiff --sample-steps or --time-budget") {
+    // Before: an explicit 0 meant the model's sample steps, or no budget at all.
+    CHECK(contains(flag_error({"--sample-steps", "0"}, [](Args& a) { madbp_cli::madiff_method(a, madbp_cli::MethodSetup{}); }),
+                   "--sample-steps: 0 is out of range [1, 100000]"));
+    CHECK(contains(flag_error({"--time-budget", "0"}, [](Args& a) { madbp_cli::cmd_madiff(a); }), "--time-budget: 0 is out of range [0.001, 1e+09]"));
+    CHECK(contains(flag_error({"--time-budget", "0"}, [](Args& a) { madbp_cli::cmd_mappo(a); }), "--time-budget: 0 is out of range"));
+}

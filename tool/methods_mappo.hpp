@@ -140,7 +140,7 @@ inline int cmd_mappo(Args& a) {
     c.out = a.str("--out", default_mappo_path(c.map, c.agents));
     c.resume = a.flag("--resume");
     c.iterations = a.integer("--iterations", c.iterations, 1, 100000000);
-    const double budget = a.real("--time-budget", 0, 0, 1e9);
+    const double budget = a.real("--time-budget", 0, 1e-3, 1e9);  // 0 (not given): none; --time-budget 0 is an error
     c.worlds = (int)a.integer("--worlds", c.worlds, 1, 100000);
     c.hidden = (int)a.integer("--hidden", c.hidden, 1, 4096);
     c.epochs = (int)a.integer("--epochs", c.epochs, 1, 1000);
