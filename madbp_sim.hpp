@@ -1291,6 +1291,7 @@ private:
 // given the old file's mode, fsynced, then renamed over `path` (and the directory fsynced).
 // A bad path throws std::runtime_error; a failed write, fsync or rename EnvironmentError.
 inline void write_file_atomic(const std::string& path, const void* data, size_t size) {
+    check_output(path);  // first, so that a refused target (/dev/null) gets no lock file beside it
     OutputLock lock(path);
     const int mode = check_output(path);
     static std::atomic<unsigned> serial{0};
