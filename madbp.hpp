@@ -71,7 +71,8 @@
 //     MultiHeadAttention, Conv1d, ConvTranspose1d, BatchNorm1d, MaxPool1d, Upsample1d, Conv2d,
 //     ReLU, SiLU, Mish, Tanh, Embedding, sinusoidal_embedding, film_forward, Adam,
 //     clip_grad_norm, Ema                                                              [4]
-//   2 checkpoints: NamedTensor, SafeTensors, parse/serialize_safetensors, write_file_atomic,
+//   2 checkpoints: NamedTensor, SafeTensors, parse/serialize_safetensors (files are written by
+//     madbp_sim.hpp's write_file_atomic),
 //     save/load_safetensors, param_tensors, read_param_tensors, save/load_params       [11]
 //   3 model inputs: ModelConfig (SceneFrame), SceneBatch, scene_origin, encode_map,
 //     route_goal, encode_agent, priority_values, end_pinned                             [5]
@@ -1587,58 +1588,14 @@ inline std::vector<uint8_t> serialize_safetensors(const std::vector<NamedTensor>
     return out;
 }
 
-namespace detail {
-[[noreturn]] inline void io_fail(const std::string& path, const std::string& what) {
-    throw std::runtime_error(path + ": " + what + ": " + std::strerror(errno));
-}
-}  // namespace detail
-
-// Writes bytes to `path` atomically: `path.tmp` is written and fsynced, then renamed over
-// `path` (and the directory fsynced), so a crash leaves either the old file or the new one.
-inline void write_file_atomic(const std::string& path, const std::vector<uint8_t>& bytes) {
-    const std::string tmp = path + ".tmp";
-    const int fd = ::open(tmp.c_str(), O_WRONLY | O_CREAT | O_TRUNC | O_CLOEXEC, 0644);
-    if (fd < 0) detail::io_fail(tmp, "cannot create");
-    size_t done = 0;
-    while (done < bytes.size()) {
-        const ssize_t w = ::write(fd, bytes.data() + done, bytes.size() - done);
-        if (w < 0 && errno == EINTR) continue;
-        if (w <= 0) {
-            const int err = errno;
-            ::close(fd);
-            ::unlink(tmp.c_str());
-            errno = err;
-            detail::io_fail(tmp, "write failed");
-        }
-        done += (size_t)w;
-    }
-    if (::fsync(fd) != 0 || ::close(fd) != 0) {
-        const int err = errno;
-        ::unlink(tmp.c_str());
-        errno = err;
-        detail::io_fail(tmp, "fsync/close failed");
-    }
-    if (::rename(tmp.c_str(), path.c_str()) != 0) {
-        const int err = errno;
-        ::unlink(tmp.c_str());
-        errno = err;
-        detail::io_fail(path, "rename from " + tmp + " failed");
-    }
-    const size_t slash = path.find_last_of('/');
-    const std::string dir = slash == std::string::npos ? "." : slash == 0 ? "/" : path.substr(0, slash);
-    const int dfd = ::open(dir.c_str(), O_RDONLY | O_CLOEXEC);
-    if (dfd >= 0) {  // best effort: some file systems refuse fsync on directories
-        ::fsync(dfd);
-        ::close(dfd);
-    }
-}
-
 // The bytes of `path` (a regular file or a pipe). A directory, a device (/dev/zero) or a file
-// of more than `max_bytes` is refused before reading (std::runtime_error naming `limit`).
+// of more than `max_bytes` is refused before reading (std::runtime_error naming `limit`), one
+// that does not start with `magic` (when given; `kind` names the format) after its first bytes.
 inline std::vector<uint8_t> read_file(const std::string& path, uint64_t max_bytes = kMaxCheckpointBytes,
-                                      const std::string& limit = "kMaxCheckpointBytes") {
+                                      const std::string& limit = "kMaxCheckpointBytes", const std::string& magic = "",
+                                      const std::string& kind = "") {
     std::vector<uint8_t> bytes;
-    detail::read_bounded(path, max_bytes, limit, bytes);
+    detail::read_bounded(path, max_bytes, limit, bytes, magic, kind);
     return bytes;
 }
 
@@ -1769,6 +1726,10 @@ enum class SceneFrame { World, Local };
 // Limits of ModelConfig::validate beyond each field's range (docs/limits.md): the U-Net kernel,
 // and the temporal attention's scores per agent (heads x horizon^2 floats of workspace).
 constexpr int kMaxKernel = 255;
+// A model's lengths in world units (position_scale, window_scale, local_extent, subgoal_distance)
+// lie in [kMinModelLength, kMaxModelLength] (subgoal_distance may be 0: off); the shipped models
+// use 0.28 to 2.4. A checkpoint outside (1e30, 1e-30) makes a planner that never succeeds.
+constexpr double kMinModelLength = 1e-3, kMaxModelLength = 1e3;
 constexpr long kMaxAttentionScores = 1L << 24;
 
 struct ModelConfig {
@@ -1816,7 +1777,12 @@ struct ModelConfig {
         if (n_max < 1 || n_max > 1024) bad("n_max", "must be in [1, 1024]");
         if (grid < 8 || grid > 1024 || grid % 8) bad("grid", "must be a multiple of 8 in [8, 1024]");
         if (local_grid < 0 || local_grid % 4 || local_grid > 256) bad("local_grid", "must be 0 or a multiple of 4 up to 256");
-        if (!(local_extent > 0) || !std::isfinite(local_extent)) bad("local_extent", "must be positive");
+        auto length = [&](const char* f, double v, bool zero_ok) {
+            if (!(v >= kMinModelLength && v <= kMaxModelLength) && !(zero_ok && v == 0))
+                bad(f, number_text(v) + " is outside [kMinModelLength, kMaxModelLength] = [" + number_text(kMinModelLength) + ", " +
+                           number_text(kMaxModelLength) + "] world units" + (zero_ok ? " (0: off)" : ""));
+        };
+        length("local_extent", local_extent, false);
         if (kernel < 1 || kernel % 2 == 0 || kernel > kMaxKernel)
             bad("kernel", std::to_string(kernel) + " must be odd and in [1, kMaxKernel = " + std::to_string(kMaxKernel) + "]");
         if ((long)heads * horizon * horizon > kMaxAttentionScores)
@@ -1825,9 +1791,9 @@ struct ModelConfig {
         if (waypoint_stride < 1 || waypoint_stride > 16) bad("waypoint_stride", "must be in [1, 16]");
         if (diffusion_steps < 2 || diffusion_steps > 100000) bad("diffusion_steps", "must be in [2, 100000]");
         if (sample_steps < 1 || sample_steps > diffusion_steps) bad("sample_steps", "must be in [1, diffusion_steps]");
-        if (!(position_scale > 0) || !std::isfinite(position_scale)) bad("position_scale", "must be positive");
-        if (!(window_scale > 0) || !std::isfinite(window_scale)) bad("window_scale", "must be positive");
-        if (!(subgoal_distance >= 0) || !std::isfinite(subgoal_distance)) bad("subgoal_distance", "must be a number >= 0");
+        length("position_scale", position_scale, false);
+        length("window_scale", window_scale, false);
+        length("subgoal_distance", subgoal_distance, true);
         if (n_train_max < 0 || n_train_max > n_max) bad("n_train_max", "must be in [0, n_max]");
     }
     std::map<std::string, std::string> to_metadata() const {
@@ -3673,7 +3639,8 @@ inline void PlannerConfig::set(const std::string& name, const std::string& text)
         if (text.empty() || end != text.c_str() + text.size() || !std::isfinite(v) || errno == ERANGE)
             throw std::invalid_argument(what + "expected a number, got '" + printable(text) + "'");
         if (s->is_integer() && v != std::floor(v)) throw std::invalid_argument(what + "expected a whole number, got '" + printable(text) + "'");
-        if (!s->allows(v)) throw std::invalid_argument(what + "must be " + s->range_text() + " (got " + printable(text) + ")");
+        // An automatic value is written "auto", never as its number: no silent sentinels.
+        if (!(v >= s->lo && v <= s->hi)) throw std::invalid_argument(what + "must be " + s->range_text() + " (got " + printable(text) + ")");
     }
     std::visit([&](auto f) {
         auto& field = f(*this);

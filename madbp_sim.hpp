@@ -119,6 +119,7 @@ constexpr int kMaxAgentId = (1 << 30) - 1;     // largest agent id World::add_ag
 constexpr int kExpertMaxGridSide = 192;        // guided expert: planning grid side, cells (coarser cells beyond)
 constexpr int kExpertMaxHorizon = 256;         // guided expert: world steps planned ahead (plus extra_horizon)
 constexpr double kMaxSvgPixels = 4096;         // side of a rendered picture, pixels (larger worlds are drawn smaller)
+constexpr double kMaxSceneCoordinate = 1000;   // |number| of a scene's disc or box (10 x kMaxHalfSize)
 
 // `s` for an error message: bytes outside printable ASCII as \xNN (a NUL no longer cuts the
 // message short), at most `max` input bytes, then "...".
@@ -153,6 +154,7 @@ inline std::string number_text(double v) {
 //   4b interaction scenes: interaction_scenarios, make_interaction_world      (issue 12)
 //   5 occupancy grid: Grid, occupancy_grid, local_crop                           [2, 5]
 //   6 scene files: Scene, parse_scene, load_scene, scene_text, make_world        [2]
+//     files: read_bounded, EnvironmentError, check_output, OutputLock, write_file_atomic
 //   7 controllers: Policy, StepModel                                             [3]
 //   8 CLF-QP: ClfQpParams, clf_qp_solve, clf_qp_action, ClfQp                    [3.1]
 //   9 tracker and safety filter: track_waypoint, track_plan, safety_filter       [3.2]
@@ -163,16 +165,18 @@ inline std::string number_text(double v) {
 //  13 SVG: render_svg, write_text_file                                           [2]
 
 #include <algorithm>
+#include <atomic>
 #include <cerrno>
 #include <cstring>
 #include <fcntl.h>
-#include <fstream>
 #include <functional>
 #include <limits>
 #include <map>
 #include <memory>
+#include <mutex>
 #include <queue>
 #include <sstream>
+#include <sys/file.h>
 #include <sys/stat.h>
 #include <utility>
 #include <vector>
@@ -298,6 +302,11 @@ inline bool inside_obstacle(const WorldMap& map, Vec2 p) {
 // (5 discs at 1.2, 20 at 2.4) so density stays the same; the barrier always spans the
 // world with one gap of width 0.5. Throws std::invalid_argument on an unknown name, a
 // half_size above kMaxHalfSize, or more than kMaxObstacles discs (obstacles beyond ~34).
+// The names make_map knows (case-sensitive).
+inline const std::vector<std::string>& map_names() {
+    static const std::vector<std::string> names = {"empty", "obstacles", "barrier"};
+    return names;
+}
 inline WorldMap make_map(const std::string& name, Rng& rng, double half_size = 1.2) {
     if (!(half_size > 0.5) || !std::isfinite(half_size))
         throw std::invalid_argument("half_size: must be a finite number > 0.5 (got " + std::to_string(half_size) + ")");
@@ -1068,12 +1077,24 @@ inline Scene parse_scene(const std::string& text, const std::string& source = "s
             world_seen = true;
         } else if (kw != "agent" && scene.map.discs.size() + scene.map.boxes.size() >= (size_t)kMaxObstacles) {
             fail(line_no, "more than kMaxObstacles = " + std::to_string(kMaxObstacles) + " discs and boxes");
-        } else if (kw == "disc") {
-            if (!(v[2] > 0)) fail(line_no, "disc radius must be > 0");
-            scene.map.discs.push_back({{v[0], v[1]}, v[2]});
-        } else if (kw == "box") {
-            if (!(v[0] < v[2] && v[1] < v[3])) fail(line_no, "box needs x0 < x1 and y0 < y1");
-            scene.map.boxes.push_back({{v[0], v[1]}, {v[2], v[3]}});
+        } else if (kw == "disc" || kw == "box") {
+            // Plausible obstacles: bounded numbers (a 1e308 box was drawn at -inf) that reach
+            // into the world (one wholly outside it is a mistake in the file, not a wall).
+            for (size_t k = 0; k < want; ++k)
+                if (std::fabs(v[k]) > kMaxSceneCoordinate)
+                    fail(line_no, "'" + printable(tok[k + 1]) + "' exceeds the limit kMaxSceneCoordinate = " + number_text(kMaxSceneCoordinate));
+            const double h = scene.map.half_size;
+            if (kw == "disc") {
+                if (!(v[2] > 0)) fail(line_no, "disc radius must be > 0");
+                if (std::fabs(v[0]) - v[2] >= h || std::fabs(v[1]) - v[2] >= h)
+                    fail(line_no, "disc lies wholly outside the world (half-size " + number_text(h) + ")");
+                scene.map.discs.push_back({{v[0], v[1]}, v[2]});
+            } else {
+                if (!(v[0] < v[2] && v[1] < v[3])) fail(line_no, "box needs x0 < x1 and y0 < y1");
+                if (v[2] <= -h || v[0] >= h || v[3] <= -h || v[1] >= h)
+                    fail(line_no, "box lies wholly outside the world (half-size " + number_text(h) + ")");
+                scene.map.boxes.push_back({{v[0], v[1]}, {v[2], v[3]}});
+            }
         } else {
             if (scene.starts.size() >= (size_t)kMaxSceneAgents)
                 fail(line_no, "more than kMaxSceneAgents = " + std::to_string(kMaxSceneAgents) + " agents");
@@ -1106,9 +1127,12 @@ inline Scene parse_scene(const std::string& text, const std::string& source = "s
 namespace detail {
 // Reads the whole of `path` (a regular file or a pipe) into `out` (std::string or
 // std::vector<uint8_t>). Refuses a directory or a device, and a file of more than `max_bytes`
-// (`limit` names the limit), before reading it; std::runtime_error naming the path otherwise.
+// (`limit` names the limit), before reading it; a file that does not start with `magic`
+// (when given) after its first bytes, not after max_bytes of a pipe; std::runtime_error
+// naming the path otherwise.
 template <class Bytes>
-inline void read_bounded(const std::string& path, uint64_t max_bytes, const std::string& limit, Bytes& out) {
+inline void read_bounded(const std::string& path, uint64_t max_bytes, const std::string& limit, Bytes& out,
+                         const std::string& magic = "", const std::string& kind = "") {
     const int fd = ::open(path.c_str(), O_RDONLY | O_CLOEXEC);
     if (fd < 0) throw std::runtime_error(path + ": cannot open: " + std::strerror(errno));
     struct FdCloser { int fd; ~FdCloser() { ::close(fd); } } closer{fd};
@@ -1130,10 +1154,182 @@ inline void read_bounded(const std::string& path, uint64_t max_bytes, const std:
         if (got < 0) throw std::runtime_error(path + ": read failed: " + std::strerror(errno));
         if (got == 0) break;
         if (out.size() + (uint64_t)got > max_bytes) throw too_big(out.size() + (uint64_t)got);
+        const bool was_short = out.size() < magic.size();
         out.insert(out.end(), buf, buf + got);
+        if (was_short && out.size() >= magic.size() && !std::equal(magic.begin(), magic.end(), out.begin()))
+            throw std::runtime_error(path + ": not a " + kind + " (magic '" + magic + "' missing)");
     }
 }
 }  // namespace detail
+
+// ---------------------------------------------------------------------------------------------
+// Writing files: every output of madbp (models, training states, datasets, CSV, SVG, results)
+// goes through write_file_atomic (docs/limits.md, "Writing files").
+
+// A failure of the environment, not of the input: a write the system refused (disk full, I/O
+// error), lost standard output. The madbp tool exits 1 on it and 2 on bad input.
+struct EnvironmentError : std::runtime_error {
+    using std::runtime_error::runtime_error;
+};
+
+namespace detail {
+// Throws "<path>: <what>: <strerror(errno)>": an EnvironmentError when `environment` or errno
+// says the system failed (ENOSPC, EDQUOT, EIO), else std::runtime_error (a bad path).
+[[noreturn]] inline void io_fail(const std::string& path, const std::string& what, bool environment = false) {
+    const int err = errno;
+    const std::string msg = printable(path, 256) + ": " + what + ": " + std::strerror(err);
+    if (environment || err == ENOSPC || err == EDQUOT || err == EIO) throw EnvironmentError(msg);
+    throw std::runtime_error(msg);
+}
+
+// The locks this process holds, by the lock file's device and inode, so that locks on one
+// output nest (flock conflicts between two open()s of one file even within a process).
+struct HeldLock {
+    int fd, count;
+    std::string lock_path;
+};
+inline std::map<std::pair<dev_t, ino_t>, HeldLock>& held_locks() {
+    static std::map<std::pair<dev_t, ino_t>, HeldLock> locks;
+    return locks;
+}
+inline std::mutex& held_locks_mutex() {
+    static std::mutex m;
+    return m;
+}
+}  // namespace detail
+
+// Refuses an output madbp must not replace, before any work: a symbolic link (refused, never
+// followed: name the link's target to write there), a directory, a device, FIFO or socket, a
+// read-only file (no write permission bit, or not writable by this user). Returns the existing
+// file's permission bits, which the new file keeps, or -1 when there is no file yet.
+// std::runtime_error naming the path.
+inline int check_output(const std::string& path) {
+    if (path.empty()) throw std::invalid_argument("output path is empty");
+    struct stat sb;
+    if (::lstat(path.c_str(), &sb) != 0) {
+        if (errno == ENOENT) return -1;
+        detail::io_fail(path, "cannot check the output");
+    }
+    const std::string p = printable(path, 256);
+    if (S_ISLNK(sb.st_mode))
+        throw std::runtime_error(p + ": is a symbolic link; madbp does not write through links (name the link's target instead)");
+    if (S_ISDIR(sb.st_mode)) throw std::runtime_error(p + ": is a directory, not a file to write");
+    if (!S_ISREG(sb.st_mode)) throw std::runtime_error(p + ": is a device, FIFO or socket, not a regular file to write");
+    if ((sb.st_mode & 0222) == 0 || ::access(path.c_str(), W_OK) != 0)
+        throw std::runtime_error(p + ": is read-only; madbp does not replace it (make it writable or choose another output)");
+    return (int)(sb.st_mode & 07777);
+}
+
+// An advisory lock on the output `path` while it lives: flock on the sidecar file path + ".lock"
+// (created without following links, removed on release). Another process that holds it makes
+// the constructor throw std::runtime_error "<path>: another run is writing it". Locks on one
+// output within a process nest: the madbp tool holds each --out for its whole run, and
+// write_file_atomic takes it again around each write.
+class OutputLock {
+public:
+    explicit OutputLock(const std::string& path) {
+        const std::string lock_path = path + ".lock";
+        std::lock_guard<std::mutex> guard(detail::held_locks_mutex());
+        for (int attempt = 0;; ++attempt) {
+            const int fd = ::open(lock_path.c_str(), O_RDWR | O_CREAT | O_NOFOLLOW | O_CLOEXEC, 0666);
+            if (fd < 0) detail::io_fail(path, "cannot create its lock file " + printable(lock_path, 256));
+            struct stat sb;
+            if (::fstat(fd, &sb) != 0) {
+                ::close(fd);
+                detail::io_fail(lock_path, "cannot stat the lock file");
+            }
+            key_ = {sb.st_dev, sb.st_ino};
+            auto it = detail::held_locks().find(key_);
+            if (it != detail::held_locks().end()) {
+                ::close(fd);
+                ++it->second.count;
+                return;
+            }
+            if (::flock(fd, LOCK_EX | LOCK_NB) != 0) {
+                const int err = errno;
+                ::close(fd);
+                if (err == EWOULDBLOCK)
+                    throw std::runtime_error(printable(path, 256) + ": another run is writing it (" + printable(lock_path, 256) +
+                                             " is locked); wait for it or choose another output");
+                errno = err;
+                detail::io_fail(lock_path, "cannot lock");
+            }
+            // The holder before us may have removed the file between our open and flock: then
+            // we hold a lock on a file nobody else will open; start again on the new one.
+            struct stat now;
+            if (::stat(lock_path.c_str(), &now) == 0 && now.st_dev == sb.st_dev && now.st_ino == sb.st_ino) {
+                detail::held_locks()[key_] = {fd, 1, lock_path};
+                return;
+            }
+            ::close(fd);
+            if (attempt >= 100) throw std::runtime_error(printable(lock_path, 256) + ": the lock file keeps changing");
+        }
+    }
+    ~OutputLock() {
+        std::lock_guard<std::mutex> guard(detail::held_locks_mutex());
+        auto it = detail::held_locks().find(key_);
+        if (it == detail::held_locks().end() || --it->second.count > 0) return;
+        ::unlink(it->second.lock_path.c_str());  // before the unlock: a waiter then sees a new file (above)
+        ::close(it->second.fd);
+        detail::held_locks().erase(it);
+    }
+    OutputLock(const OutputLock&) = delete;
+    OutputLock& operator=(const OutputLock&) = delete;
+
+private:
+    std::pair<dev_t, ino_t> key_;
+};
+
+// Writes `size` bytes to `path` so that a crash, a full disk or a second run leaves either the
+// old file or the new one, never a mix: under the output's OutputLock, check_output refuses a
+// link, a non-regular or a read-only target; the bytes go to a temporary file of a unique name
+// in the target's directory, created exclusively (never an existing file or a planted link),
+// given the old file's mode, fsynced, then renamed over `path` (and the directory fsynced).
+// A bad path throws std::runtime_error; a failed write, fsync or rename EnvironmentError.
+inline void write_file_atomic(const std::string& path, const void* data, size_t size) {
+    check_output(path);  // first, so that a refused target (/dev/null) gets no lock file beside it
+    OutputLock lock(path);
+    const int mode = check_output(path);
+    static std::atomic<unsigned> serial{0};
+    std::string tmp;
+    int fd = -1;
+    for (int attempt = 0; fd < 0; ++attempt) {
+        tmp = path + ".tmp." + std::to_string(::getpid()) + "." + std::to_string(serial++);
+        fd = ::open(tmp.c_str(), O_WRONLY | O_CREAT | O_EXCL | O_NOFOLLOW | O_CLOEXEC, 0666);  // 0666 & ~umask
+        if (fd < 0 && (errno != EEXIST || attempt >= 100)) detail::io_fail(tmp, "cannot create the temporary file");
+    }
+    auto fail = [&](const std::string& what, const std::string& where) {
+        const int err = errno;
+        if (fd >= 0) ::close(fd);
+        ::unlink(tmp.c_str());
+        errno = err;
+        detail::io_fail(where, what, true);
+    };
+    if (mode >= 0 && ::fchmod(fd, (mode_t)mode) != 0) fail("cannot keep the mode of the file it replaces", tmp);
+    const uint8_t* bytes = (const uint8_t*)data;
+    for (size_t done = 0; done < size;) {
+        const ssize_t w = ::write(fd, bytes + done, size - done);
+        if (w < 0 && errno == EINTR) continue;
+        if (w <= 0) fail("write failed", tmp);
+        done += (size_t)w;
+    }
+    if (::fsync(fd) != 0) fail("fsync failed", tmp);
+    const int closed = ::close(fd);
+    fd = -1;
+    if (closed != 0) fail("close failed", tmp);
+    if (::rename(tmp.c_str(), path.c_str()) != 0) fail("rename from " + printable(tmp, 256) + " failed", path);
+    const size_t slash = path.find_last_of('/');
+    const std::string dir = slash == std::string::npos ? "." : slash == 0 ? "/" : path.substr(0, slash);
+    const int dfd = ::open(dir.c_str(), O_RDONLY | O_CLOEXEC);
+    if (dfd >= 0) {  // best effort: some file systems refuse fsync on directories
+        ::fsync(dfd);
+        ::close(dfd);
+    }
+}
+inline void write_file_atomic(const std::string& path, const std::vector<uint8_t>& bytes) {
+    write_file_atomic(path, bytes.data(), bytes.size());
+}
+inline void write_file_atomic(const std::string& path, const std::string& text) { write_file_atomic(path, text.data(), text.size()); }
 
 // Reads and parses a scene file (at most kMaxSceneBytes; a directory or device is refused).
 inline Scene load_scene(const std::string& path) {
@@ -2336,13 +2532,8 @@ inline std::string render_svg(const EpisodeLog& log, const SvgOptions& opt = Svg
     o << "</svg>\n";
     return o.str();
 }
-// Writes `text` to `path` (std::runtime_error when it cannot).
-inline void write_text_file(const std::string& path, const std::string& text) {
-    std::ofstream f(path, std::ios::binary);
-    if (!f) throw std::runtime_error(path + ": cannot open for writing");
-    f << text;
-    if (!f) throw std::runtime_error(path + ": write failed");
-}
+// Writes `text` to `path` (write_file_atomic).
+inline void write_text_file(const std::string& path, const std::string& text) { write_file_atomic(path, text); }
 
 }  // namespace madbp
 

@@ -209,13 +209,18 @@ inline DemoSet collect_demonstrations(const CollectConfig& c, const Demonstrator
 //   string map_name, f64 half_size, u32 discs + discs * (f64 cx, cy, r),
 //   u32 boxes + boxes * (f64 x0, y0, x1, y1), u32 agents, u32 steps, u8 success,
 //   goals agents*(f32 x, y), pos and vel (steps+1)*agents*(f32 x, y), act steps*agents*(f32 x, y).
-//   A string is u32 length + bytes. Written atomically (temp file + rename).
+//   A string is u32 length + bytes. Written by write_file_atomic.
 // Limits (docs/limits.md), checked before allocating: the file <= kMaxDatasetBytes; per episode
 // half_size <= kMaxHalfSize, discs + boxes <= kMaxObstacles, 1 <= agents <= kMaxDatasetAgents,
 // 1 <= steps <= kMaxDatasetSteps; every count must also fit the bytes left in the file.
 constexpr uint64_t kMaxDatasetBytes = 1ull << 30;  // 1 GiB (the shipped model's dataset is ~60 MB)
 constexpr int kMaxDatasetAgents = 1024;
 constexpr int kMaxDatasetSteps = 100000;
+// Plausible motion: every velocity's speed <= kMaxDatasetSpeed world units per second (full
+// force gives at most 0.57; contacts push harder for a step, far below this), every action
+// component within the world's action bound kMaxDatasetAction (WorldConfig::max_action).
+constexpr double kMaxDatasetSpeed = 10;
+constexpr double kMaxDatasetAction = 1;
 namespace detail {
 struct ByteWriter {
     std::vector<uint8_t> bytes;
@@ -330,12 +335,20 @@ inline void validate_demos(const DemoSet& set, int n_max = kMaxDatasetAgents, co
         };
         check_points(d.goals, "goals");
         check_points(d.pos, "pos");
-        auto check_finite = [&](const std::vector<Vec2>& v, const char* field) {
-            for (size_t k = 0; k < v.size(); ++k)
-                if (!std::isfinite(v[k].x) || !std::isfinite(v[k].y)) fail(std::string(field) + "[" + std::to_string(k) + "] is not finite");
-        };
-        check_finite(d.vel, "vel");
-        check_finite(d.act, "act");
+        for (size_t k = 0; k < d.vel.size(); ++k)
+            if (!(norm(d.vel[k]) <= kMaxDatasetSpeed))
+                fail("vel[" + std::to_string(k) + "] = " + point(d.vel[k]) + ": speed above kMaxDatasetSpeed = " + num(kMaxDatasetSpeed));
+        const double act_lim = kMaxDatasetAction * (1 + 1e-6);  // stored as f32
+        for (size_t k = 0; k < d.act.size(); ++k)
+            if (!(std::fabs(d.act[k].x) <= act_lim && std::fabs(d.act[k].y) <= act_lim))
+                fail("act[" + std::to_string(k) + "] = " + point(d.act[k]) + " outside the action bound kMaxDatasetAction = " + num(kMaxDatasetAction));
+        const std::string base = d.map_name.substr(0, d.map_name.find('/'));
+        const std::string scenario = base.size() < d.map_name.size() ? d.map_name.substr(base.size() + 1) : "";
+        const auto& maps = map_names();
+        const auto& scenarios = interaction_scenarios();
+        if (std::find(maps.begin(), maps.end(), base) == maps.end() ||
+            (base.size() < d.map_name.size() && std::find(scenarios.begin(), scenarios.end(), scenario) == scenarios.end()))
+            fail("map name '" + printable(d.map_name) + "' is not MAP or MAP/SCENARIO (maps: empty, obstacles, barrier; case-sensitive)");
     }
 }
 
@@ -408,9 +421,11 @@ inline DemoSet parse_demos(const uint8_t* data, size_t size, const std::string& 
     validate_demos(set, kMaxDatasetAgents, path);
     return set;
 }
-// Reads a dataset file (at most kMaxDatasetBytes; a directory or device is refused).
+// Reads a dataset file (at most kMaxDatasetBytes; a directory or device is refused; the
+// signature is checked after the first bytes, so `yes | madbp train --data /dev/stdin` stops
+// there instead of reading 1 GiB).
 inline DemoSet load_demos(const std::string& path) {
-    const std::vector<uint8_t> bytes = read_file(path, kMaxDatasetBytes, "kMaxDatasetBytes");
+    const std::vector<uint8_t> bytes = read_file(path, kMaxDatasetBytes, "kMaxDatasetBytes", "MADBPDS1", "madbp dataset");
     return parse_demos(bytes.data(), bytes.size(), path);
 }
 
@@ -951,9 +966,11 @@ public:
     // Restores the run from <out>.train and returns its step: every identity field must equal
     // this run's (the error names the first that differs), then the weights, state, Adam, EMA,
     // RNG streams and the curve rows up to that step come back. The file's metadata stays in
-    // `resumed` for a trainer's own fields.
+    // `resumed` for a trainer's own fields (resumed_numbers). A state past this run's
+    // `last_step` (a summary and no model, before) or whose Adam step is not `adam_per_step`
+    // updates per step is refused (std::invalid_argument, std::runtime_error).
     std::map<std::string, std::string> resumed;
-    long resume() {
+    long resume(long last_step, long adam_per_step = 1) {
         const SafeTensors st = load_safetensors(state_path());
         resumed = st.metadata;
         for (auto& kv : identity_) {
@@ -971,8 +988,29 @@ public:
         if (s.empty() || s.size() > 18 || s.find_first_not_of("0123456789") != std::string::npos)
             throw std::runtime_error(state_path() + ": __metadata__['train.step'] = '" + s + "' is not a step count");
         const long step = std::stol(s);
+        if (step > last_step)
+            throw std::invalid_argument(state_path() + ": the training state is at step " + s + ", past this run's last step " +
+                                        std::to_string(last_step) + " (--steps / --iterations): ask for at least " + s +
+                                        " to continue it, or write another --out");
+        if (adam_.step != step * adam_per_step)
+            throw std::runtime_error(state_path() + ": __metadata__['optim.adam.step'] = " + std::to_string(adam_.step) +
+                                     " does not match train.step = " + s + " (" + std::to_string(adam_per_step) +
+                                     " optimizer updates per step): the file is inconsistent");
         curve.read_csv(csv_path(), step);
         return step;
+    }
+    // `count` finite numbers from the resumed metadata's `key` (a trainer's smoothed losses);
+    // std::runtime_error naming the file and the key otherwise.
+    std::vector<double> resumed_numbers(const std::string& key, int count) const {
+        auto it = resumed.find(key);
+        std::stringstream ss(it == resumed.end() ? std::string() : it->second);
+        std::vector<double> v((size_t)count);
+        for (double& x : v)
+            if (!(ss >> x) || !std::isfinite(x)) ss.setstate(std::ios::failbit);
+        std::string rest;
+        if (!ss || (ss >> rest))
+            throw std::runtime_error(state_path() + ": __metadata__['" + key + "'] is not " + std::to_string(count) + " finite numbers");
+        return v;
     }
     // Writes <out>.train (identity, step and `metadata` in its header) and <out>.csv.
     void save(long step, std::map<std::string, std::string> metadata) const {
@@ -1049,6 +1087,12 @@ inline std::map<std::string, std::string> train_identity(const DemoSet& demos, c
 inline TrainReport train(const DemoSet& demos, MadbpModel& model, const TrainConfig& tc) {
     const ModelConfig& mc = model.config;
     if (demos.episodes.empty()) throw std::invalid_argument("train: the dataset has no episodes");
+    float weight_sum = 0;
+    for (float w : tc.loss_weights) {
+        if (!(w >= 0 && std::isfinite(w))) throw std::invalid_argument("train: loss_weights must be finite and >= 0");
+        weight_sum += w;
+    }
+    if (!(weight_sum > 0)) throw std::invalid_argument("train: loss_weights are all 0: there is nothing to train");
     if (tc.batch < 1 || tc.steps < 1) throw std::invalid_argument("train: batch and steps must be >= 1");
     if (tc.log_every < 1 || tc.checkpoint_every < 1 || tc.val_batches < 1)
         throw std::invalid_argument("train: log_every, checkpoint_every and val_batches must be >= 1");
@@ -1086,10 +1130,9 @@ inline TrainReport train(const DemoSet& demos, MadbpModel& model, const TrainCon
     long step = 0;
     LossTerms smooth;  // exponentially smoothed training losses (in the state file: the curve continues exactly)
     if (tc.resume) {
-        step = state.resume();
-        if (std::sscanf(state.resumed["train.smooth"].c_str(), "%lf %lf %lf %lf %lf", &smooth.total, &smooth.noise, &smooth.boundary,
-                        &smooth.temporal, &smooth.collision) != 5)
-            throw std::runtime_error(state.state_path() + ": __metadata__['train.smooth'] is not five numbers");
+        step = state.resume(tc.steps);
+        const std::vector<double> sm = state.resumed_numbers("train.smooth", 5);
+        smooth.total = sm[0], smooth.noise = sm[1], smooth.boundary = sm[2], smooth.temporal = sm[3], smooth.collision = sm[4];
     }
     if (ema.shadow.size() != model.params->size()) ema.shadow = model.params->value;
 
@@ -1888,8 +1931,11 @@ inline MappoReport train_mappo(const MappoConfig& c, MappoNet* result = nullptr)
                      {"iteration", "env_steps", "seconds", "success", "episode_return", "policy_loss", "value_loss", "entropy",
                       "approx_kl", "clip_fraction"});
     if (c.resume) {
-        iteration = state.resume();
-        seconds_before = std::atof(state.resumed["mappo.seconds"].c_str());
+        // Adam updates per iteration: one per non-empty minibatch (the rollout's S samples in
+        // c.minibatches parts) of each epoch.
+        const long samples = (long)WorldConfig{}.max_steps * c.worlds * c.agents;
+        iteration = state.resume(c.iterations, (long)c.epochs * std::min<long>(c.minibatches, samples));
+        seconds_before = state.resumed_numbers("mappo.seconds", 1)[0];
     }
     const int n = c.agents, W = c.worlds, O = kMappoObs;
     WorldConfig wc;
@@ -2153,6 +2199,9 @@ namespace madbp {
 constexpr const char* kMadiffFormat = "madiff";
 
 // Architecture and sampling defaults of a MADiff model; stored in the checkpoint.
+// |norm.lo|, |norm.hi| of a MADiff checkpoint: its observations are scaled to about +-1.7.
+constexpr double kMaxMadiffLimit = 1e3;
+
 struct MadiffConfig {
     std::string map = "empty";           // map the model was trained on (recorded, not enforced)
     int agents = 2;                      // n, the fixed team size, in [1, 64]
@@ -2329,6 +2378,16 @@ public:
         params->state_vec(lo_, kMappoObs) = lo;
         params->state_vec(hi_, kMappoObs) = hi.array().max(lo.array() + 1e-3f).matrix();
     }
+    // Refuses limits a checkpoint holds that no training data gives: lo < hi per feature, both
+    // finite within +-kMaxMadiffLimit (swapped limits flip every observation: 413 collisions).
+    void check_limits(const std::string& source) const {
+        const auto lo = params->state_vec(lo_, kMappoObs), hi = params->state_vec(hi_, kMappoObs);
+        for (int i = 0; i < kMappoObs; ++i)
+            if (!(lo[i] < hi[i] && std::fabs(lo[i]) <= kMaxMadiffLimit && std::fabs(hi[i]) <= kMaxMadiffLimit))
+                throw std::runtime_error(source + ": norm.lo[" + std::to_string(i) + "] = " + number_text(lo[i]) + ", norm.hi[" +
+                                         std::to_string(i) + "] = " + number_text(hi[i]) + ": needs lo < hi within +-kMaxMadiffLimit = " +
+                                         number_text(kMaxMadiffLimit));
+    }
     // Scaled observations (O, N) -> [-1, 1] per feature, in place (values beyond the training
     // data's limits map beyond +-1).
     void normalize(Mat& obs) const {
@@ -2429,6 +2488,7 @@ inline MadiffModel madiff_from(const SafeTensors& st) {
     MadiffModel m(MadiffConfig::from_metadata(st));
     read_param_tensors(st, *m.params);
     if (!m.params->value.allFinite() || !m.params->state.allFinite()) throw std::runtime_error(st.source + ": a parameter is not finite");
+    m.check_limits(st.source);
     m.set_training(false);
     return m;
 }
@@ -2684,10 +2744,10 @@ inline MadiffReport train_madiff(const DemoSet& demos, MadiffConfig mc, const Ma
                      {"step", "seconds", "loss", "diffusion", "inverse"});
     MadiffLoss smooth;  // exponentially smoothed (in the state file: the curve continues exactly)
     if (tc.resume) {
-        step = state.resume();
-        seconds_before = std::atof(state.resumed["madiff.seconds"].c_str());
-        if (std::sscanf(state.resumed["madiff.smooth"].c_str(), "%lf %lf %lf", &smooth.total, &smooth.diffusion, &smooth.inverse) != 3)
-            throw std::runtime_error(state.state_path() + ": __metadata__['madiff.smooth'] is not three numbers");
+        step = state.resume(tc.steps);
+        seconds_before = state.resumed_numbers("madiff.seconds", 1)[0];
+        const std::vector<double> sm = state.resumed_numbers("madiff.smooth", 3);
+        smooth.total = sm[0], smooth.diffusion = sm[1], smooth.inverse = sm[2];
     }
     if (ema.shadow.size() != model.params->size()) ema.shadow = model.params->value;
     const auto t_start = std::chrono::steady_clock::now();

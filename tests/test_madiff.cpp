@@ -17,7 +17,7 @@ namespace {
 std::string temp_path(const std::string& name) { return "/tmp/madbp_test_madiff_" + std::to_string(::getpid()) + "_" + name; }
 
 void remove_outputs(const std::string& out) {
-    for (const char* ext : {"", ".train", ".csv", ".tmp", ".train.tmp"}) std::remove((out + ext).c_str());
+    for (const char* ext : {"", ".train", ".csv"}) std::remove((out + ext).c_str());
 }
 
 MadiffConfig tiny_config(int agents = 2) {

@@ -15,7 +15,7 @@ namespace {
 std::string temp_path(const std::string& name) { return "/tmp/madbp_test_mappo_" + std::to_string(::getpid()) + "_" + name; }
 
 void remove_outputs(const std::string& out) {
-    for (const char* ext : {"", ".train", ".csv", ".svg", ".tmp", ".train.tmp"}) std::remove((out + ext).c_str());
+    for (const char* ext : {"", ".train", ".csv", ".svg"}) std::remove((out + ext).c_str());
 }
 
 // A tiny, fast configuration: few worlds, few iterations.

@@ -36,6 +36,16 @@ TEST_CASE("settings: the table names every field once, in groups, and its values
         }
     }
     CHECK(names.size() == planner_settings().size());
+    // An automatic value is "auto", not its number.
+    PlannerConfig c;
+    for (const char* name : {"neighbourhood.neighbours", "neighbourhood.sensing_radius", "sampler.sample_steps", "sampler.goal_reach"}) {
+        const PlannerSetting* s = find_planner_setting(name);
+        REQUIRE(s);
+        REQUIRE(s->automatic);
+        CHECK_THROWS_WITH_AS(c.set(name, number_text(s->automatic_value)), doctest::Contains("or auto"), std::invalid_argument);
+        c.set(name, "auto");
+        CHECK(s->get(c) == s->automatic_value);
+    }
     CHECK_THROWS_WITH_AS(PlannerConfig().set("sampler.nope", "1"), doctest::Contains("no such setting"), std::invalid_argument);
     CHECK_THROWS_WITH_AS(PlannerConfig::preset("fast"), doctest::Contains("expected tuned or paper"), std::invalid_argument);
 }

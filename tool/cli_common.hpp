@@ -1,10 +1,14 @@
 // cli_common.hpp - argument parsing and output helpers shared by the madbp command-line tool.
 // Not part of the library: the tool's own plumbing.
 #pragma once
+#include <sys/stat.h>
 #include <unistd.h>
 
 #include <algorithm>
+#include <cerrno>
+#include <cmath>
 #include <chrono>
+#include <cstring>
 #include <memory>
 #include <cstdio>
 #include <map>
@@ -18,13 +22,30 @@
 
 namespace madbp_cli {
 
+// A comma-separated list given to flag `key`; an empty list or an empty item ("a,,b", "a,")
+// is an error naming the flag.
+inline std::vector<std::string> split(const std::string& s, const std::string& key = "list") {
+    std::vector<std::string> out;
+    size_t start = 0;
+    for (size_t comma; start <= s.size(); start = comma + 1) {
+        comma = s.find(',', start);
+        if (comma == std::string::npos) comma = s.size();
+        if (comma == start) throw std::invalid_argument(key + ": empty item in '" + madbp::printable(s) + "'");
+        out.push_back(s.substr(start, comma - start));
+    }
+    return out;
+}
+
 // "--key value", "--key=value" and "--flag" arguments. Every key a subcommand reads is
 // recorded, so that an unknown flag (a typo) is reported instead of silently ignored: call
 // finish() after reading. A value may start with a single '-' (--goal-reach -0.5: then the
 // reader's range decides); an empty value (--episodes=, --out "") is an error, never the default.
+// A key given twice is an error naming it, except one read with all() (--set a=1 --set b=2).
+// Every message that shows a value shows it through madbp::printable (escaped, cut).
 struct Args {
     std::map<std::string, std::string> values;                 // the last value of each key
     std::map<std::string, std::vector<std::string>> repeats;   // every value of each key, in order (all())
+    std::map<std::string, int> given;                          // how often each key or flag was given
     std::set<std::string> flags, used;
     std::vector<std::string> positional;
 
@@ -37,6 +58,7 @@ struct Args {
             if (a.rfind("--", 0) == 0) {
                 auto eq = a.find('=');
                 std::string key = a, value;
+                ++given[eq == std::string::npos ? a : a.substr(0, eq)];
                 if (eq != std::string::npos) key = a.substr(0, eq), value = a.substr(eq + 1);
                 else if (i + 1 < n && args[i + 1].rfind("--", 0) != 0) value = args[++i];
                 else { flags.insert(a); continue; }
@@ -47,9 +69,16 @@ struct Args {
             }
         }
     }
-    bool flag(const std::string& key) {
+    // `key` as a flag or a value is read once: given twice, which one was meant is a guess.
+    void once(const std::string& key) {
         used.insert(key);
-        if (values.count(key)) throw std::invalid_argument(key + ": is a flag and takes no value (got '" + values[key] + "')");
+        auto it = given.find(key);
+        if (it != given.end() && it->second > 1)
+            throw std::invalid_argument(madbp::printable(key) + ": given " + std::to_string(it->second) + " times; give it once");
+    }
+    bool flag(const std::string& key) {
+        once(key);
+        if (values.count(key)) throw std::invalid_argument(key + ": is a flag and takes no value (got '" + madbp::printable(values[key]) + "')");
         return flags.count(key) > 0;
     }
     // Every value of a key that may be given more than once (--set a=1 --set b=2), in order.
@@ -61,7 +90,7 @@ struct Args {
     }
     bool has(const std::string& key) const { return values.count(key) || flags.count(key); }
     std::string str(const std::string& key, const std::string& def) {
-        used.insert(key);
+        once(key);
         if (flags.count(key)) throw std::invalid_argument(key + ": needs a value");
         auto it = values.find(key);
         if (it != values.end() && it->second.empty())
@@ -70,47 +99,68 @@ struct Args {
     }
     long integer(const std::string& key, long def, long lo = -(1L << 40), long hi = (1L << 40)) {
         std::string s = str(key, "");
-        if (s.empty()) return def;
-        size_t pos = 0;
-        long v = 0;
-        try { v = std::stol(s, &pos); } catch (...) { pos = 0; }
-        if (pos != s.size()) throw std::invalid_argument(key + ": expected an integer, got '" + s + "'");
-        if (v < lo || v > hi)
-            throw std::invalid_argument(key + ": " + s + " is out of range [" + std::to_string(lo) + ", " + std::to_string(hi) + "]");
-        return v;
+        return s.empty() ? def : parse_integer(key, s, lo, hi);
     }
     double real(const std::string& key, double def, double lo = -1e300, double hi = 1e300) {
         std::string s = str(key, "");
-        if (s.empty()) return def;
-        size_t pos = 0;
-        double v = 0;
-        try { v = std::stod(s, &pos); } catch (...) { pos = 0; }
-        if (pos != s.size() || !(v == v)) throw std::invalid_argument(key + ": expected a number, got '" + s + "'");
-        if (v < lo || v > hi) throw std::invalid_argument(key + ": " + s + " is out of range");
-        return v;
+        return s.empty() ? def : parse_real(key, s, lo, hi);
     }
     // Comma-separated integers, e.g. --agents 2,4,6.
     std::vector<long> integers(const std::string& key, const std::string& def, long lo = 0, long hi = 1L << 40) {
-        std::string s = str(key, def);
         std::vector<long> out;
-        std::stringstream ss(s);
-        std::string item;
-        while (std::getline(ss, item, ',')) {
-            size_t pos = 0;
-            long v = 0;
-            try { v = std::stol(item, &pos); } catch (...) { pos = 0; }
-            if (item.empty() || pos != item.size()) throw std::invalid_argument(key + ": expected integers like 2,4,6, got '" + s + "'");
-            if (v < lo || v > hi) throw std::invalid_argument(key + ": " + item + " is out of range");
-            out.push_back(v);
-        }
-        if (out.empty()) throw std::invalid_argument(key + ": empty list");
+        for (const std::string& item : split(str(key, def), key)) out.push_back(parse_integer(key, item, lo, hi));
+        return out;
+    }
+    // Comma-separated numbers, e.g. --weights .85,.025,.025,.1.
+    std::vector<double> reals(const std::string& key, const std::string& def, double lo = -1e300, double hi = 1e300) {
+        std::vector<double> out;
+        for (const std::string& item : split(str(key, def), key)) out.push_back(parse_real(key, item, lo, hi));
         return out;
     }
     // Throws on any argument no reader asked for.
     void finish() const {
-        for (auto& kv : values) if (!used.count(kv.first)) throw std::invalid_argument("unknown option " + kv.first);
-        for (auto& f : flags) if (!used.count(f)) throw std::invalid_argument("unknown option " + f);
-        if (!positional.empty()) throw std::invalid_argument("unexpected argument '" + positional[0] + "'");
+        for (auto& kv : values) if (!used.count(kv.first)) throw std::invalid_argument("unknown option " + madbp::printable(kv.first));
+        for (auto& f : flags) if (!used.count(f)) throw std::invalid_argument("unknown option " + madbp::printable(f));
+        if (!positional.empty()) throw std::invalid_argument("unexpected argument '" + madbp::printable(positional[0]) + "'");
+    }
+
+    // "--key: 1e309 is out of range [lo, hi]" and the like: a number too large for the parser
+    // is out of range, not "not a number".
+    static std::string range_error(const std::string& key, const std::string& s, const std::string& lo, const std::string& hi) {
+        return key + ": " + madbp::printable(s) + " is out of range [" + lo + ", " + hi + "]";
+    }
+    static long parse_integer(const std::string& key, const std::string& s, long lo, long hi) {
+        size_t pos = 0;
+        long v = 0;
+        try {
+            v = std::stol(s, &pos);
+        } catch (const std::out_of_range&) {
+            throw std::invalid_argument(range_error(key, s, std::to_string(lo), std::to_string(hi)));
+        } catch (...) {
+            pos = 0;
+        }
+        if (pos != s.size() || s.empty()) throw std::invalid_argument(key + ": expected an integer, got '" + madbp::printable(s) + "'");
+        if (v < lo || v > hi) throw std::invalid_argument(range_error(key, s, std::to_string(lo), std::to_string(hi)));
+        return v;
+    }
+    static double parse_real(const std::string& key, const std::string& s, double lo, double hi) {
+        size_t pos = 0;
+        double v = 0;
+        bool huge = false;
+        try {
+            v = std::stod(s, &pos);
+        } catch (const std::out_of_range&) {  // 1e309 (huge), or 1e-400 (underflow: its nearest double)
+            char* end = nullptr;
+            v = std::strtod(s.c_str(), &end);
+            pos = (size_t)(end - s.c_str());
+            huge = std::isinf(v);
+        } catch (...) {
+            pos = 0;
+        }
+        if (pos != s.size() || s.empty() || (!huge && !(v == v)))
+            throw std::invalid_argument(key + ": expected a number, got '" + madbp::printable(s) + "'");
+        if (huge || v < lo || v > hi) throw std::invalid_argument(range_error(key, s, madbp::number_text(lo), madbp::number_text(hi)));
+        return v;
     }
 };
 
@@ -131,6 +181,60 @@ inline void apply_planner_settings(Args& a, madbp::PlannerConfig& settings) {
         settings.set(item.substr(0, eq), item.substr(eq + 1));
     }
     settings.validate();
+}
+
+// The dataset --data `path` names, for training a model of `n_max` robots: it must have
+// episodes (the message names the file) and teams that fit.
+inline madbp::DemoSet load_training_data(const std::string& path, int n_max) {
+    madbp::DemoSet demos = madbp::load_demos(path);
+    if (demos.episodes.empty()) throw std::invalid_argument(madbp::printable(path, 256) + ": the dataset has no episodes");
+    madbp::validate_demos(demos, n_max, path);  // every team must fit the model's n_max
+    return demos;
+}
+
+// A file a command writes, with the flag that named it (for messages).
+struct FileArg {
+    std::string flag, path;
+};
+
+// True when `a` and `b` name one existing file (device and inode, links followed).
+inline bool same_file(const std::string& a, const std::string& b) {
+    struct stat sa, sb;
+    return ::stat(a.c_str(), &sa) == 0 && ::stat(b.c_str(), &sb) == 0 && sa.st_dev == sb.st_dev && sa.st_ino == sb.st_ino;
+}
+
+// The outputs of a run, claimed before its work starts, so that hours of training never end
+// in a refused write: each output and each output + sidecar suffix (a run's FILE.train,
+// FILE.csv, ...) must not be a file any other flag names (--data, --model, --scene: an input;
+// std::invalid_argument naming both flags) and must be a file madbp may replace
+// (madbp::check_output); each output is then locked for the run (madbp::OutputLock, which
+// covers its sidecars): a second run writing it is told so.
+inline std::vector<std::unique_ptr<madbp::OutputLock>> claim_outputs(const Args& a, const std::vector<FileArg>& outputs,
+                                                                     const std::vector<std::string>& sidecars = {}) {
+    std::vector<std::unique_ptr<madbp::OutputLock>> locks;
+    for (const FileArg& out : outputs) {
+        std::vector<std::string> paths = {out.path};
+        for (const std::string& s : sidecars) paths.push_back(out.path + s);
+        for (const std::string& path : paths) {
+            for (const auto& kv : a.repeats)
+                for (const std::string& in : kv.second)
+                    if (kv.first != out.flag && same_file(path, in))
+                        throw std::invalid_argument(out.flag + " " + madbp::printable(path, 256) + " is the same file as " + kv.first + " " +
+                                                    madbp::printable(in, 256) + "; choose another output");
+            madbp::check_output(path);
+        }
+        locks.push_back(std::make_unique<madbp::OutputLock>(out.path));
+    }
+    return locks;
+}
+
+// Throws madbp::EnvironmentError when what was written to `f` (standard output) is lost: a
+// full disk, /dev/full, a closed descriptor. Results that never arrived are not a success.
+inline void check_written(FILE* f, const char* name = "standard output") {
+    errno = 0;
+    const bool flushed = std::fflush(f) == 0;
+    if (flushed && !std::ferror(f)) return;
+    throw madbp::EnvironmentError(std::string("cannot write the results to ") + name + (errno ? std::string(": ") + std::strerror(errno) : ""));
 }
 
 // `world` `steps` steps on with every robot held still: a plan of it right after a plan of

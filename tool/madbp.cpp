@@ -7,7 +7,8 @@
 //     function that reads its own options and returns a per-episode PolicyFactory). Planners
 //     plug in through madbp::PlanFollower.
 //   - a subcommand: one entry in subcommands() in main().
-// Bad input prints one line on stderr and exits with code 2.
+// Bad input prints one line on stderr and exits with code 2; a failure of the environment (a
+// write the disk refused, lost standard output) exits with code 1.
 #include <omp.h>
 
 #include <cstring>
@@ -24,6 +25,9 @@
 using namespace madbp_cli;
 
 namespace {
+
+// An error line longer than this is cut (a 100 KB flag value is not echoed whole).
+constexpr size_t kMaxMessageBytes = 1000;
 
 // render records every frame of the episode: its step limit bounds the log and the SVG.
 constexpr int kMaxRenderSteps = 10000;
@@ -157,7 +161,7 @@ int cmd_eval(Args& a) {
                             fixed(r.success_se, 3).c_str(), fixed(r.collisions, 2).c_str(), fixed(r.steps, 1).c_str(),
                             fixed(r.decision_ms, 3).c_str());
             }
-            std::fflush(stdout);
+            check_written(stdout);  // stop at the first lost cell, not after the whole run
         }
     return 0;
 }
@@ -168,6 +172,7 @@ int render_episode(const Method& method, Args& a, MethodSetup setup, const madbp
                    const std::string& scenario = "") {
     MethodSpec spec = method.make(a, setup);
     a.finish();
+    const auto locks = claim_outputs(a, {{"--out", out}});
     madbp::WorldConfig wc;
     wc.max_steps = max_steps;
     madbp::World world = scene               ? madbp::make_world(*scene, wc)
@@ -343,6 +348,12 @@ void usage(FILE* f) {
                     "built for (MADBP_MODEL_DIR), ./models (madbp.hpp's default_model_path).\n");
 }
 
+// The one line of an error. Every message passes through madbp::printable: a value a message
+// quotes (a flag's, a file's) reaches the terminal without its escape bytes and cut short.
+void report_error(const std::string& subcommand, const std::exception& e) {
+    std::fprintf(stderr, "madbp %s: %s\n", madbp::printable(subcommand).c_str(), madbp::printable(e.what(), kMaxMessageBytes).c_str());
+}
+
 }  // namespace
 
 int main(int argc, char** argv) {
@@ -355,11 +366,19 @@ int main(int argc, char** argv) {
         for (auto& s : subcommands()) {
             if (name != s.name) continue;
             Args args(argc, argv, 2);
-            return s.run(args);
+            const int rc = s.run(args);
+            check_written(stdout);
+            return rc;
         }
-        throw std::invalid_argument("unknown subcommand '" + name + "' (try madbp --help)");
+        throw std::invalid_argument("unknown subcommand '" + madbp::printable(name) + "' (try madbp --help)");
+    } catch (const madbp::EnvironmentError& e) {  // disk full, lost stdout: one line, exit code 1
+        report_error(name, e);
+        return 1;
+    } catch (const std::bad_alloc&) {  // the machine's memory, not the input (inputs are bounded)
+        std::fprintf(stderr, "madbp %s: out of memory\n", madbp::printable(name).c_str());
+        return 1;
     } catch (const std::exception& e) {  // bad flags, files, maps: one line, exit code 2
-        std::fprintf(stderr, "madbp %s: %s\n", name.c_str(), e.what());
+        report_error(name, e);
         return 2;
     }
 }

@@ -40,19 +40,6 @@ struct Method {
 
 namespace madbp_cli {
 
-// A comma-separated list given to flag `key`; an empty list or an empty item ("a,,b", "a,")
-// is an error naming the flag.
-inline std::vector<std::string> split(const std::string& s, const std::string& key = "list") {
-    std::vector<std::string> out;
-    std::stringstream ss(s);
-    for (std::string item; std::getline(ss, item, ',');) {
-        if (item.empty()) throw std::invalid_argument(key + ": empty item in '" + s + "'");
-        out.push_back(item);
-    }
-    if (out.empty() || s.back() == ',') throw std::invalid_argument(key + ": empty item in '" + s + "'");
-    return out;
-}
-
 inline std::vector<Method> methods() {
     std::vector<Method> m;
     m.push_back({"clfqp",
@@ -105,7 +92,7 @@ inline const Method& find_method(const std::vector<Method>& all, const std::stri
         if (m.name == name) return m;
         names += (names.empty() ? "" : ", ") + m.name;
     }
-    throw std::invalid_argument("--method: unknown method '" + name + "' (expected one of " + names + ")");
+    throw std::invalid_argument("--method: unknown method '" + madbp::printable(name) + "' (expected one of " + names + ")");
 }
 
 inline std::string method_list() {

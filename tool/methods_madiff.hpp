@@ -20,7 +20,7 @@ inline std::string default_madiff_path(const std::string& map, int agents) {
 inline MethodSpec madiff_method(Args& a, const MethodSetup& s) {
     madbp::set_num_threads(1);  // one thread per decision; eval --threads runs episodes in parallel
     const std::string path = a.str("--model", "");
-    const int steps = (int)a.integer("--sample-steps", 0, 0, 100000);
+    const int steps = (int)a.integer("--sample-steps", 0, 1, 100000);  // 0 (not given): the model's own; --sample-steps 0 is an error
     const double w = a.real("--guidance", -1, 0, 100);
     const double target = a.real("--return", -1e9, -10, 10);
     if (path.empty() && s.map == "scene") throw std::invalid_argument("--model: needed with --scene (MADiff models are per map and n)");
@@ -86,7 +86,7 @@ inline int cmd_madiff(Args& a) {
     tc.out = a.str("--out", default_madiff_path(mc.map, mc.agents));
     tc.resume = a.flag("--resume");
     tc.steps = a.integer("--steps", tc.steps, 1, 100000000);
-    const double budget = a.real("--time-budget", 0, 0, 1e9);
+    const double budget = a.real("--time-budget", 0, 1e-3, 1e9);  // 0 (not given): none; --time-budget 0 is an error
     tc.batch = (int)a.integer("--batch", tc.batch, 1, 100000);
     mc.horizon = (int)a.integer("--horizon", mc.horizon, 2, 256);
     mc.sample_steps = (int)a.integer("--sample-steps", mc.sample_steps, 1, 100000);
@@ -101,9 +101,10 @@ inline int cmd_madiff(Args& a) {
         const auto t0 = std::chrono::steady_clock::now();
         tc.keep_going = [t0, budget](long) { return std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count() < budget; };
     }
-    const madbp::DemoSet demos = madbp::load_demos(data);
+    const madbp::DemoSet demos = load_training_data(data, madbp::kMaxDatasetAgents);
     const size_t slash = tc.out.find_last_of('/');
     if (slash != std::string::npos && slash > 0) ::mkdir(tc.out.substr(0, slash).c_str(), 0755);  // e.g. models/madiff; exists: fine
+    const auto locks = claim_outputs(a, {{"--out", tc.out}}, {".train", ".csv"});
     madbp::MadiffModel model(mc);
     tc.progress = progress_line("madiff " + mc.map + " n=" + std::to_string(mc.agents));
     const madbp::MadiffReport r = madbp::train_madiff(demos, mc, tc, &model);

@@ -140,7 +140,7 @@ inline int cmd_mappo(Args& a) {
     c.out = a.str("--out", default_mappo_path(c.map, c.agents));
     c.resume = a.flag("--resume");
     c.iterations = a.integer("--iterations", c.iterations, 1, 100000000);
-    const double budget = a.real("--time-budget", 0, 0, 1e9);
+    const double budget = a.real("--time-budget", 0, 1e-3, 1e9);  // 0 (not given): none; --time-budget 0 is an error
     c.worlds = (int)a.integer("--worlds", c.worlds, 1, 100000);
     c.hidden = (int)a.integer("--hidden", c.hidden, 1, 4096);
     c.epochs = (int)a.integer("--epochs", c.epochs, 1, 1000);
@@ -174,6 +174,7 @@ inline int cmd_mappo(Args& a) {
     }
     const size_t slash = c.out.find_last_of('/');
     if (slash != std::string::npos && slash > 0) ::mkdir(c.out.substr(0, slash).c_str(), 0755);  // e.g. models/mappo; exists: fine
+    const auto locks = claim_outputs(a, {{"--out", c.out}}, {".train", ".csv", ".svg"});
     c.progress = progress_line("mappo " + c.map + " n=" + std::to_string(c.agents));
     madbp::MappoReport r = madbp::train_mappo(c);
     if (!c.out.empty())

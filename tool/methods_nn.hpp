@@ -99,8 +99,7 @@ inline void register_nn_methods(std::vector<Method>& m) {
 inline std::vector<std::pair<std::string, double>> parse_scenario_mix(const std::string& list) {
     std::vector<std::pair<std::string, double>> mix;
     if (list.empty()) return mix;
-    std::stringstream ss(list);
-    for (std::string item; std::getline(ss, item, ',');) {
+    for (const std::string& item : split(list, "--scenarios")) {
         const size_t colon = item.find(':');
         const std::string name = item.substr(0, colon), frac = colon == std::string::npos ? "" : item.substr(colon + 1);
         size_t pos = 0;
@@ -126,8 +125,7 @@ inline std::vector<std::pair<std::string, double>> parse_scenario_mix(const std:
 // --maps LIST (default empty,obstacles,barrier); an unknown name fails here, before any work.
 inline std::vector<std::string> read_maps(Args& a) {
     std::vector<std::string> maps;
-    std::stringstream ss(a.str("--maps", "empty,obstacles,barrier"));
-    for (std::string m; std::getline(ss, m, ',');) {
+    for (const std::string& m : split(a.str("--maps", "empty,obstacles,barrier"), "--maps")) {
         madbp::Rng probe(0);
         madbp::make_map(m, probe);
         maps.push_back(m);
@@ -166,6 +164,7 @@ inline int cmd_collect(Args& a) {
     std::string model = a.str("--model", "");
     bool json = a.flag("--json");
     a.finish();
+    const auto locks = claim_outputs(a, {{"--out", out}});
     if (dem != "expert" && dem != "mappo") throw std::invalid_argument("--demonstrator: unknown demonstrator '" + dem + "' (expected expert or mappo)");
     if (dem == "mappo" && model.empty())
         throw std::invalid_argument("--model: --demonstrator mappo needs a policy file, e.g. 'models/mappo/empty-{n}.safetensors' ({n} = team size)");
@@ -228,16 +227,12 @@ inline int cmd_train(Args& a) {
     tc.curriculum_end = (float)a.real("--curriculum-end", 0.5, 0, 1);
     tc.checkpoint_every = a.integer("--checkpoint-every", 1000, 1);
     tc.seed = (uint64_t)a.integer("--seed", 0, 0);
-    std::string w = a.str("--weights", "");
-    if (!w.empty()) {
-        float v[4];
-        char tail = 0;
-        if (std::sscanf(w.c_str(), "%f,%f,%f,%f%c", &v[0], &v[1], &v[2], &v[3], &tail) != 4)
-            throw std::invalid_argument("--weights: expected four numbers like .85,.025,.025,.1, got '" + w + "'");
-        for (int i = 0; i < 4; ++i) {
-            if (!(v[i] >= 0) || !std::isfinite(v[i])) throw std::invalid_argument("--weights: weights must be finite and >= 0");
-            tc.loss_weights[i] = v[i];
-        }
+    if (a.has("--weights")) {
+        const std::vector<double> w = a.reals("--weights", "", 0, 1e6);
+        if (w.size() != 4 || w[0] + w[1] + w[2] + w[3] <= 0)
+            throw std::invalid_argument("--weights: expected four numbers >= 0, not all 0, like .85,.025,.025,.1, got '" +
+                                        madbp::printable(a.str("--weights", "")) + "'");
+        for (int i = 0; i < 4; ++i) tc.loss_weights[i] = (float)w[i];
     }
     madbp::ModelConfig mc;
     mc.horizon = (int)a.integer("--horizon", mc.horizon, 2, 4096);
@@ -276,11 +271,11 @@ inline int cmd_train(Args& a) {
     int threads = (int)a.integer("--threads", 2, 1, 256);
     bool json = a.flag("--json");
     a.finish();
+    const auto locks = claim_outputs(a, {{"--out", tc.out}}, {".train", ".csv", ".svg"});
     mc.validate();
     tc.threads = threads;
     madbp::set_num_threads(threads);
-    madbp::DemoSet demos = madbp::load_demos(data);
-    madbp::validate_demos(demos, mc.n_max, data);  // every team must fit the model's n_max
+    madbp::DemoSet demos = load_training_data(data, mc.n_max);
     madbp::MadbpModel model(mc, tc.seed);
     if (!json) std::printf("train: %zu episodes from '%s', model with %ld parameters\n", demos.episodes.size(), demos.demonstrator.c_str(), model.parameter_count());
     tc.progress = progress_line("train");
@@ -342,13 +337,13 @@ inline int cmd_dagger(Args& a) {
     c.train.seed = seed;
     const int threads = (int)a.integer("--threads", 2, 1, 256);
     a.finish();
+    const auto locks = claim_outputs(a, {{"--out", c.train.out}}, {".train", ".csv", ".dagger.csv"});
     c.rollouts.threads = threads;
     c.train.threads = threads;
     madbp::set_num_threads(1);
     madbp::MadbpModel model = madbp::load_model(o.model_path);
     if (c.train.n_train_max > model.config.n_max) throw std::invalid_argument("--n-train-max: exceeds the model's n_max");
-    madbp::DemoSet base = madbp::load_demos(data);
-    madbp::validate_demos(base, model.config.n_max, data);
+    madbp::DemoSet base = load_training_data(data, model.config.n_max);
     c.rollouts.progress = progress_line("dagger rollouts");
     c.train.progress = progress_line("dagger fine-tune");
     c.on_round = [&](const madbp::DaggerRound& r) {
