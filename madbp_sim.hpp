@@ -19,6 +19,8 @@
 //
 // Changelog
 //   0.3  PassageControl and its parameters move to madbp.hpp (the planner's traffic conventions).
+//        ClearanceGrid moves to Section 2; interaction scenes check reachability on its layout
+//        (detail::all_reachable; ReachGrid, a second cell grid, is gone).
 //   0.2  ProgressFn instead of printing; Policy::decision_ms.
 //        Map is now WorldMap (no clash with Eigen::Map), with operator==; local_crop moved here.
 //        PlanFollower's filter weighs robots as the expert does (FollowerConfig::priority_weight).
@@ -148,7 +150,7 @@ inline std::string number_text(double v) {
 //
 // Contents (section numbers below; SPEC sections in brackets)
 //   1 geometry: Vec2, Disc, Box, WorldMap, for_each_surface, static_clearance
-//   2 maps: make_map("empty" | "obstacles" | "barrier")                          [2]
+//   2 maps: make_map("empty" | "obstacles" | "barrier"), ClearanceGrid (the map's cells) [2]
 //   3 the world: WorldConfig, Agent, Metrics, World (add/remove agents, step)    [2]
 //   4 spawning: spawn_agents, make_random_world, WorldBatch                      [2]
 //   4b interaction scenes: interaction_scenarios, make_interaction_world      (issue 12)
@@ -160,7 +162,7 @@ inline std::string number_text(double v) {
 //   9 tracker and safety filter: track_waypoint, track_plan, safety_filter       [3.2]
 //  10 plans: Plan, Planner, validate_plan, waypoint_now, LinePlanner, PlanFollower [3.2, 3.5, 8]
 //  11 episodes and evaluation: EpisodeLog, run_episode, evaluate                 [9, 10]
-//  12 guided expert: ClearanceGrid, wavefront, ClosedCells, RouteGoal, RouteGuide (route subgoals),
+//  12 guided expert: wavefront, ClosedCells, RouteGoal, RouteGuide (route subgoals),
 //     ExpertParams, GuidedExpert (one-lane passages: the planner's, madbp.hpp)   [3.6]
 //  13 SVG: render_svg, write_text_file                                           [2]
 
@@ -342,6 +344,39 @@ inline WorldMap make_map(const std::string& name, Rng& rng, double half_size = 1
     }
     throw std::invalid_argument("map: unknown map name '" + name + "' (expected empty, obstacles or barrier)");
 }
+
+// Static clearance (distance from the cell centre to the nearest obstacle or wall surface) on
+// a square grid over the world; cell k is (row k / n, column k % n), row 0 = lowest y. The
+// side is the world's width in cells of about `cell_wanted`, at most `max_side` (>= 2): a larger
+// world gets coarser cells, `stretch` = (side wanted) / n > 1 times as wide (1 when not capped).
+// The cell grid of the map: the guided expert and the route guide plan on it (Section 12), the
+// interaction scenes check reachability on its layout (Section 4b); the model's occupancy raster
+// is Grid (Section 5), the planner's node-sampled fields DistanceField (madbp.hpp).
+struct ClearanceGrid {
+    int n = 0;
+    double cell = 0.04, half = 1.2, stretch = 1;
+    std::vector<float> clear;
+    ClearanceGrid() = default;
+    // fill = false: the layout only (n, cell, stretch; `clear` left empty).
+    ClearanceGrid(const WorldMap& map, double cell_wanted, int max_side = kExpertMaxGridSide, bool fill = true) : half(map.half_size) {
+        if (!(cell_wanted > 0) || !std::isfinite(cell_wanted) || max_side < 2)
+            throw std::invalid_argument("ClearanceGrid: needs cell > 0 and max_side >= 2 (got " + std::to_string(cell_wanted) + ", " +
+                                        std::to_string(max_side) + ")");
+        const double wanted = std::max(2.0, std::round(2 * half / cell_wanted));  // a double: a huge world cannot wrap
+        n = (int)std::min(wanted, (double)max_side);
+        stretch = wanted > n ? wanted / n : 1.0;
+        cell = 2 * half / n;
+        if (!fill) return;
+        clear.resize((size_t)n * n);
+        for (int k = 0; k < n * n; ++k) clear[k] = (float)static_clearance(map, centre(k));
+    }
+    int index(Vec2 p) const {
+        int col = std::clamp((int)std::floor((p.x + half) / cell), 0, n - 1);
+        int row = std::clamp((int)std::floor((p.y + half) / cell), 0, n - 1);
+        return row * n + col;
+    }
+    Vec2 centre(int k) const { return {-half + (k % n + 0.5) * cell, -half + (k / n + 0.5) * cell}; }
+};
 
 // =============================================================================================
 // Section 3. The world (SPEC 2)
@@ -700,28 +735,18 @@ inline const std::vector<std::string>& interaction_scenarios() {
 }
 
 namespace detail {
-// Cells of ~`cell` over the world whose centre has clearance >= min_clear, as ClearanceGrid and
-// wavefront (Section 12) lay them out; reach(a, b): a breadth-first search in 8 directions from
-// b's cell (always allowed) reaches a's cell.
-struct ReachGrid {
-    int n = 0;
-    double half = 1.2, cell = 0.036, min_clear = 0.13;
-    std::vector<uint8_t> free;
-    std::vector<int> queue, seen;
-    ReachGrid(const WorldMap& map, double cell_wanted = 0.036, double min_clear_ = 0.13) : half(map.half_size), min_clear(min_clear_) {
-        n = (int)std::min(std::max(2.0, std::round(2 * half / cell_wanted)), (double)kExpertMaxGridSide);
-        cell = 2 * half / n;
-        free.resize((size_t)n * n);
-        for (int k = 0; k < n * n; ++k)
-            free[k] = static_clearance(map, {-half + (k % n + 0.5) * cell, -half + (k / n + 0.5) * cell}) >= min_clear;
-    }
-    int index(Vec2 p) const {
-        int col = std::clamp((int)std::floor((p.x + half) / cell), 0, n - 1);
-        int row = std::clamp((int)std::floor((p.y + half) / cell), 0, n - 1);
-        return row * n + col;
-    }
-    bool reach(Vec2 from, Vec2 to) {
-        const int goal = index(to), start = index(from);
+// Whether, for every i, a breadth-first search in 8 directions from to[i]'s cell (always
+// allowed) reaches from[i]'s cell over the cells of a ClearanceGrid layout of ~`cell` whose
+// centre has clearance >= min_clear (measured in double precision: the float clearances of a
+// filled grid could round a cell across the line, and the scenes drawn would change).
+inline bool all_reachable(const WorldMap& map, const std::vector<Vec2>& from, const std::vector<Vec2>& to, double cell = 0.036,
+                          double min_clear = 0.13) {
+    const ClearanceGrid g(map, cell, kExpertMaxGridSide, /*fill*/ false);
+    const int n = g.n;
+    std::vector<uint8_t> free((size_t)n * n), seen;
+    for (int k = 0; k < n * n; ++k) free[k] = static_clearance(map, g.centre(k)) >= min_clear;
+    std::vector<int> queue;
+    auto reach = [&](int start, int goal) {
         if (start == goal) return true;
         seen.assign((size_t)n * n, 0);
         queue.assign(1, goal);
@@ -740,8 +765,11 @@ struct ReachGrid {
                 }
         }
         return false;
-    }
-};
+    };
+    for (size_t i = 0; i < from.size(); ++i)
+        if (!reach(g.index(from[i]), g.index(to[i]))) return false;
+    return true;
+}
 
 // Distance between two boxes' surfaces (0 when they touch or overlap).
 inline double box_gap(const Box& a, const Box& b) {
@@ -785,10 +813,7 @@ inline bool interaction_scene_valid(const WorldMap& map, const std::vector<Vec2>
         for (size_t j = 0; j < i; ++j)
             if (norm(starts[i] - starts[j]) < min_sep || norm(goals[i] - goals[j]) < min_sep) return false;
     }
-    ReachGrid grid(map);
-    for (size_t i = 0; i < starts.size(); ++i)
-        if (!grid.reach(starts[i], goals[i])) return false;
-    return true;
+    return all_reachable(map, starts, goals);
 }
 }  // namespace detail
 
@@ -1992,33 +2017,6 @@ inline int nearest_surface(const WorldMap& map, Vec2 p) {
 }
 }  // namespace detail
 
-// Static clearance (distance from the cell centre to the nearest obstacle or wall surface) on
-// a square grid over the world; cell k is (row k / n, column k % n), row 0 = lowest y. The
-// side is the world's width in cells of about `cell_wanted`, at most `max_side` (>= 2): a larger
-// world gets coarser cells, `stretch` = (side wanted) / n > 1 times as wide (1 when not capped).
-struct ClearanceGrid {
-    int n = 0;
-    double cell = 0.04, half = 1.2, stretch = 1;
-    std::vector<float> clear;
-    ClearanceGrid() = default;
-    ClearanceGrid(const WorldMap& map, double cell_wanted, int max_side = kExpertMaxGridSide) : half(map.half_size) {
-        if (!(cell_wanted > 0) || !std::isfinite(cell_wanted) || max_side < 2)
-            throw std::invalid_argument("ClearanceGrid: needs cell > 0 and max_side >= 2 (got " + std::to_string(cell_wanted) + ", " +
-                                        std::to_string(max_side) + ")");
-        const double wanted = std::max(2.0, std::round(2 * half / cell_wanted));  // a double: a huge world cannot wrap
-        n = (int)std::min(wanted, (double)max_side);
-        stretch = wanted > n ? wanted / n : 1.0;
-        cell = 2 * half / n;
-        clear.resize((size_t)n * n);
-        for (int k = 0; k < n * n; ++k) clear[k] = (float)static_clearance(map, centre(k));
-    }
-    int index(Vec2 p) const {
-        int col = std::clamp((int)std::floor((p.x + half) / cell), 0, n - 1);
-        int row = std::clamp((int)std::floor((p.y + half) / cell), 0, n - 1);
-        return row * n + col;
-    }
-    Vec2 centre(int k) const { return {-half + (k % n + 0.5) * cell, -half + (k / n + 0.5) * cell}; }
-};
 
 // Cells of a grid a route keeps out of: those k with (*label)[k] == id (a PassageControl
 // passage: its passage() labels and index). `key` names the set in a RouteGuide's wavefront
