@@ -75,7 +75,7 @@
 //     madbp_sim.hpp's write_file_atomic),
 //     save/load_safetensors, param_tensors, read_param_tensors, save/load_params       [11]
 //   3 model inputs: ModelConfig (SceneFrame), SceneBatch, scene_origin, encode_map,
-//     route_goal, encode_agent, priority_values, end_pinned                             [5]
+//     route_goal, encode_agent, end_pinned                                              [5]
 //   4 model parts: ConvBlock, AgentAttention, FilmUNet, StepEmbedding, ContextEncoder,
 //     TrajectoryProcessor                                                              [5]
 //   5 the model: MadbpModel, save_model, load_model, default_model_path (the shipped model:
@@ -98,6 +98,8 @@
 //        PassageControl moves here from madbp_sim.hpp (Section 8); PassageParams is TrafficConfig.
 //        make_follower; DecentralisedTeam (from the tool). default_model_path.
 //        detail::ddim_loop: one DDIM loop for the plain, guided and MADiff samplers.
+//        ModelConfig::velocity_context and priority_context removed (with priority_values,
+//        Neighbour::vel and plan_robot's `vel`); a checkpoint that sets either is refused.
 //   0.2  One FilmUNet, ContextEncoder and TrajectoryProcessor; one world-to-model encoder.
 //        BatchNorm statistics in ParamStore::state; optimizer-state I/O moved to madbp_train.hpp.
 //        The Local scene frame, route subgoals, ModelConfig::n_train_max (absent = as in 0.1).
@@ -1754,16 +1756,8 @@ struct ModelConfig {
     float subgoal_distance = 0;        // > 0: a goal farther than this, or out of view, is given as a point this far
                                        // along the route around the map (route_goal; world units)
     int n_train_max = 0;               // the largest team in training (metadata train.n_train_max; 0 = unknown)
-    bool velocity_context = false;     // each robot's current velocity is in its pose (metadata "velocity_context")
-    bool priority_context = false;     // each robot's place in the guided expert's priority order is in its pose
-                                       // (priority_values; metadata "priority_context")
 
     int levels() const { return (int)channels.size(); }
-    // Rows of SceneBatch::pose: position, goal (then velocity, then priority, when in the context).
-    int pose_rows() const { return 4 + (velocity_context ? 2 : 0) + (priority_context ? 1 : 0); }
-    // A velocity in pose units: the displacement over one window at that velocity, in window_scale
-    // units (about 1 at the expert's cruising pace, like the window itself).
-    double velocity_unit() const { return (horizon - 1) * waypoint_stride * WorldConfig{}.dt / window_scale; }
     int image_tokens() const { return (grid / 8) * (grid / 8); }
     // Throws std::invalid_argument naming the field when a value is unusable.
     void validate() const {
@@ -1812,8 +1806,6 @@ struct ModelConfig {
                 {"window", window == WindowMode::MW ? "MW" : "CT"}, {"position_scale", scale}, {"window_scale", wscale},
                 {"prediction", prediction == Prediction::Eps ? "eps" : "x0"}, {"local_grid", std::to_string(local_grid)},
                 {"local_extent", lext}, {"frame", frame == SceneFrame::World ? "world" : "local"}, {"subgoal_distance", sub}};
-        if (velocity_context) md["velocity_context"] = "1";
-        if (priority_context) md["priority_context"] = "1";
         if (n_train_max > 0) md["train.n_train_max"] = std::to_string(n_train_max);  // training writes it too
         return md;
     }
@@ -1883,11 +1875,13 @@ struct ModelConfig {
         }
         if (md.count("subgoal_distance")) c.subgoal_distance = real("subgoal_distance");
         if (md.count("train.n_train_max")) c.n_train_max = integer("train.n_train_max");
-        for (const auto& [flag, field] : {std::pair<const char*, bool*>{"velocity_context", &c.velocity_context}, {"priority_context", &c.priority_context}}) {
+        // Options of 0.2 removed in 0.3 (they did not help): 0, their default, reads as before; a
+        // model trained with one needs inputs this release no longer gives it.
+        for (const char* flag : {"velocity_context", "priority_context"}) {
             if (!md.count(flag)) continue;
             const std::string& v = get(flag);
-            if (v != "0" && v != "1") throw std::runtime_error(source + ": metadata field '" + std::string(flag) + "' must be 0 or 1");
-            *field = v == "1";
+            if (v == "1") throw std::runtime_error(source + ": metadata field '" + flag + "' = 1: the option was removed in release 0.3");
+            if (v != "0") throw std::runtime_error(source + ": metadata field '" + flag + "' must be 0 or 1");
         }
         try { c.validate(); } catch (const std::invalid_argument& e) { throw std::runtime_error(source + ": " + e.what()); }
         return c;
@@ -1900,9 +1894,8 @@ struct SceneBatch {
     std::vector<float> agent_mask;  // (A) 1 = active agent, 0 = padding
     std::vector<int> slot;          // (A) PE_agent slot in [0, n_max), distinct within a scene
     std::vector<int> count;         // (B) active agents per scene (n_a)
-    Mat pose;                       // (4, A) normalised current position x, y and goal x, y, from the scene's origin;
-                                    // then velocity x, y (velocity_unit) with ModelConfig::velocity_context, then
-                                    // priority_values with ModelConfig::priority_context
+    static constexpr int kPoseRows = 4;
+    Mat pose;                       // (kPoseRows, A) normalised current position x, y and goal x, y, from the scene's origin
     Mat grid;                       // (1, G*G*B) occupancy grid per scene, column b*G*G + row*G + col
     Mat local;                      // (1, Gl*Gl*A) each agent's crop of the map (local_crop), when Gl > 0
     bool shared_grid = false;       // grid holds one map for every scene (planning only; encoded once)
@@ -1921,21 +1914,21 @@ struct SceneBatch {
         return {o.x + pose(2, a) * (double)c.position_scale, o.y + pose(3, a) * (double)c.position_scale};
     }
     int grid_scenes() const { return shared_grid ? 1 : B; }
-    void resize(int B_, int n_, int G, int Gl = 0, bool shared = false, int pose_rows = 4) {
+    void resize(int B_, int n_, int G, int Gl = 0, bool shared = false) {
         B = B_;
         n = n_;
         shared_grid = shared;
         agent_mask.assign((size_t)B * n, 0.0f);
         slot.assign((size_t)B * n, 0);
         count.assign(B, 0);
-        pose.setZero(pose_rows, B * n);
+        pose.setZero(kPoseRows, B * n);
         grid.setZero(1, (long)G * G * grid_scenes());
         local.setZero(1, (long)Gl * Gl * B * n);
         origin.assign(B, Vec2{0, 0});
         goal_final.assign((size_t)B * n, 1.0f);
         noise_seed.clear();
     }
-    void resize(int B_, int n_, const ModelConfig& c, bool shared = false) { resize(B_, n_, c.grid, c.local_grid, shared, c.pose_rows()); }
+    void resize(int B_, int n_, const ModelConfig& c, bool shared = false) { resize(B_, n_, c.grid, c.local_grid, shared); }
 };
 
 // ---------------------------------------------------------------------------------------------
@@ -1992,31 +1985,16 @@ inline RouteGoal route_goal(RouteGuide& guide, const ModelConfig& c, const World
 
 // Agent column a (scene a / n, whose origin is set): active, with PE_agent slot `slot`, its
 // position and goal normalised from the scene's origin, whether that goal is its real one
-// (`final`; a subgoal's end is never pinned), its velocity (only with velocity_context), its
-// priority_values entry (only with priority_context), and its own crop of the map (when the model has one).
+// (`final`; a subgoal's end is never pinned), and its own crop of the map (when the model has one).
 inline void encode_agent(SceneBatch& batch, int a, int slot, Vec2 pos, Vec2 goal, const WorldMap& map, const ModelConfig& c,
-                         bool final = true, Vec2 vel = {0, 0}, float priority = 1) {
+                         bool final = true) {
     const Vec2 o = batch.origin[a / batch.n], p = pos - o, g = goal - o;
     batch.agent_mask[a] = 1;
     batch.slot[a] = slot;
     batch.goal_final[a] = final ? 1.0f : 0.0f;
     batch.pose.col(a).head<4>() << (float)(p.x / c.position_scale), (float)(p.y / c.position_scale), (float)(g.x / c.position_scale),
         (float)(g.y / c.position_scale);
-    if (c.velocity_context) batch.pose.col(a).segment<2>(4) << (float)(vel.x * c.velocity_unit()), (float)(vel.y * c.velocity_unit());
-    if (c.priority_context) batch.pose(c.pose_rows() - 1, a) = priority;
     if (c.local_grid > 0) local_crop(map, pos, c.local_grid, c.local_extent, batch.local.data() + (long)a * c.local_grid * c.local_grid);
-}
-
-// The priority context (ModelConfig::priority_context) of a scene of m robots: their places in
-// the guided expert's priority order (priority_order: travelling first, then the longest route
-// from where each was first seen, then the lower id) as values from 1 (first) down to 0 (last;
-// 1 when alone). The expert's demonstrations decide who gives way by this order, which the
-// robots' positions alone leave open in a symmetric standoff. `values` receives m values.
-template <class AtGoal, class Key, class Id>
-void priority_values(int m, AtGoal at_goal, Key key, Id id, std::vector<int>& order, std::vector<float>& values) {
-    priority_order(m, at_goal, key, id, order);
-    values.resize(m);
-    for (int r = 0; r < m; ++r) values[order[r]] = m > 1 ? 1.0f - (float)r / (float)(m - 1) : 1.0f;
 }
 
 // About the distance a window covers at the expert's cruising pace (0.55 units for 15 steps).
@@ -2328,7 +2306,7 @@ struct ContextEncoder {
         g2 = Conv2d(ps, "ctx.grid2", 16, 32, 3, 2, 1, rng);
         g3 = Conv2d(ps, "ctx.grid3", 32, D, 3, 2, 1, rng);
         pe_img = Embedding(ps, "ctx.pe_img", c.image_tokens(), D, rng);
-        pose1 = Linear(ps, "ctx.pose1", c.pose_rows(), D, rng);
+        pose1 = Linear(ps, "ctx.pose1", SceneBatch::kPoseRows, D, rng);
         pose2 = Linear(ps, "ctx.pose2", D, D, rng);
         if (c.local_grid > 0) {
             l1 = Conv2d(ps, "ctx.local1", 1, 8, 3, 2, 1, rng);
@@ -2639,7 +2617,7 @@ private:
         if (b.B < 1 || b.n < 1) throw std::invalid_argument("scene batch: needs B >= 1 and n >= 1");
         if (b.n > config.n_max)
             throw std::invalid_argument("scene batch: " + std::to_string(b.n) + " agent slots exceed the model's n_max = " + std::to_string(config.n_max));
-        if ((long)b.agent_mask.size() != A || (long)b.slot.size() != A || (long)b.count.size() != b.B || b.pose.rows() != config.pose_rows() ||
+        if ((long)b.agent_mask.size() != A || (long)b.slot.size() != A || (long)b.count.size() != b.B || b.pose.rows() != SceneBatch::kPoseRows ||
             b.pose.cols() != A || b.grid.rows() != 1 || b.grid.cols() != (long)config.grid * config.grid * b.grid_scenes() ||
             b.local.cols() != (long)config.local_grid * config.local_grid * A || (long)b.origin.size() != b.B ||
             (long)b.goal_final.size() != A || (!b.noise_seed.empty() && (long)b.noise_seed.size() != b.B))
@@ -4081,10 +4059,7 @@ public:
     // Another robot as one robot knows it: position and goal as received from it.
     struct Neighbour {
         Vec2 pos, goal;
-        Vec2 vel = {0, 0};  // read only by a model with ModelConfig::velocity_context
-        int id = -1;        // breaks ties in taking turns (take_turns: the lower id goes first, -1 after any id), and
-                            // with ModelConfig::priority_context its priority key is its route when this planner
-                            // first saw that id (-1: unknown, its route now)
+        int id = -1;  // breaks ties in taking turns (take_turns: the lower id goes first, -1 after any id)
     };
     PlannerConfig settings;
     int last_plan_candidates() const { return last_k_; }  // candidates per scene the last plan drew
@@ -4112,7 +4087,6 @@ public:
     // through a one-lane passage, at last_wait_points()[i]; kGoAround, goes around one; kGoOn.
     const std::vector<char>& last_waiting() const { return waiting_; }
     const std::vector<Vec2>& last_wait_points() const { return wait_point_; }
-    size_t remembered_robots() const { return first_route_.size(); }  // priority keys held (ModelConfig::priority_context)
     void reseed(uint64_t seed) { rng_.reseed(seed); }
 
     // Robots per scene (at most) when planning a team of n in a world of half-size `half_size`,
@@ -4159,14 +4133,12 @@ public:
         const bool local = settings.neighbourhood.neighbours != 0 && (K < n || world.map().half_size > model_.config.position_scale * (1 + 1e-9));
         pos_.resize(n);
         goal_.resize(n);
-        vel_.resize(n);
         ids_.resize(n);
         at_goal_.resize(n);
         for (int i = 0; i < n; ++i) {
             const Agent& a = world.agents()[i];
-            pos_[i] = a.pos, goal_[i] = a.goal, vel_[i] = a.vel, ids_[i] = a.id, at_goal_[i] = world.at_goal(a);
+            pos_[i] = a.pos, goal_[i] = a.goal, ids_[i] = a.id, at_goal_[i] = world.at_goal(a);
         }
-        priority_keys(world.map(), n);
         now_ = world.t();
         plan_scenes(world.map(), n, local ? n : 1, K, local);
         for (int i = 0; i < n; ++i) {
@@ -4187,9 +4159,8 @@ public:
     // order, a first plan_robot's window equals the one a first plan() (or one with warm_start
     // 0) gives this robot under neighbourhood planning (K = neighbourhood size of an automatic or
     // set `neighbours`; the whole team when neighbours = 0).
-    // `vel` (and Neighbour::vel) is read only by a model with ModelConfig::velocity_context. The
-    // ids (the robot's own `id`, and Neighbour::id) break ties in taking turns, so give the ids
-    // the team's plan() sees for the same turns, and are read by a model with priority_context.
+    // The ids (the robot's own `id`, and Neighbour::id) break ties in taking turns, so give the
+    // ids the team's plan() sees for the same turns.
     // `step`: the robot's clock in world steps (dt each), for warm starts (SamplerConfig::warm_start):
     // the plan starts from this planner's last plan_robot windows (its own and the neighbours' it
     // drew then, by id) when that plan was made at an earlier step; a robot of the scene without
@@ -4197,7 +4168,7 @@ public:
     // scene draws cold; with step -1 (the default) every robot has no window.
     // Use one planner per robot, as one per world.
     void plan_robot(const WorldMap& map, int id, Vec2 pos, Vec2 goal, const std::vector<Neighbour>& others, std::vector<Vec2>& window,
-                    Vec2 vel = {0, 0}, long step = -1) {
+                    long step = -1) {
         if (step < -1) throw std::invalid_argument("planner: plan_robot's step must be >= 0, or -1 for a cold draw (got " + std::to_string(step) + ")");
         const int n = 1 + (int)others.size();
         for (int i = 0; i < n; ++i) {
@@ -4209,14 +4180,12 @@ public:
         const int K = settings.neighbourhood.neighbours == 0 ? n : std::min(neighbourhood_size(), n);
         pos_.resize(n);
         goal_.resize(n);
-        vel_.resize(n);
         ids_.resize(n);
         at_goal_.resize(n);
-        pos_[0] = pos, goal_[0] = goal, vel_[0] = vel, ids_[0] = id;
+        pos_[0] = pos, goal_[0] = goal, ids_[0] = id;
         for (int i = 1; i < n; ++i)
-            pos_[i] = others[i - 1].pos, goal_[i] = others[i - 1].goal, vel_[i] = others[i - 1].vel, ids_[i] = others[i - 1].id;
+            pos_[i] = others[i - 1].pos, goal_[i] = others[i - 1].goal, ids_[i] = others[i - 1].id;
         for (int i = 0; i < n; ++i) at_goal_[i] = WorldConfig{}.reached(pos_[i], goal_[i]);
-        priority_keys(map, n);
         now_ = step;
         plan_scenes(map, n, 1, std::min(K, n), /*local*/ true);
         // The scene's windows, the robot's (slot 0) and its neighbours': the next plan_robot starts from them.
@@ -4240,12 +4209,8 @@ private:
     bool grid_valid_ = false;
     Mat x_, eps_;
     std::vector<int> steps_, members_, ids_;
-    std::vector<Vec2> pos_, goal_, vel_;  // the robots planned for (ego first for plan_robot)
+    std::vector<Vec2> pos_, goal_;   // the robots planned for (ego first for plan_robot)
     std::vector<char> at_goal_;
-    std::vector<double> key_;             // priority keys (ModelConfig::priority_context)
-    std::map<int, int> first_route_;      // id -> route steps when first seen
-    std::vector<int> order_;
-    std::vector<float> priority_;
     std::vector<RouteGoal> route_;   // what each is told to head for (route_goal)
     PassageControl passages_;        // traffic.take_turns: the one-lane passages
     std::vector<char> waiting_;      // robots told to wait, and where
@@ -4260,23 +4225,6 @@ private:
     long last_t_ = -1, now_ = -1;
     int last_k_ = 1;  // last_plan_candidates
     Mat warm_;  // (2, H * scenes * K) the warm windows
-
-    // key_: each robot's route steps (RouteGuide::route_steps) from where this planner first saw
-    // it; from where it is for a robot without an id.
-    void priority_keys(const WorldMap& map, int n) {
-        key_.resize(n);
-        if (!model_.config.priority_context) return;
-        for (int i = 0; i < n; ++i) {
-            if (ids_[i] < 0) { key_[i] = guide_.route_steps(map, pos_[i], goal_[i]); continue; }
-            auto it = first_route_.find(ids_[i]);
-            if (it == first_route_.end()) it = first_route_.emplace(ids_[i], guide_.route_steps(map, pos_[i], goal_[i])).first;
-            key_[i] = it->second;
-        }
-        // Robots that left are forgotten once far more are remembered than present (dynamic teams).
-        if (first_route_.size() > 2 * (size_t)n + 256)
-            for (auto it = first_route_.begin(); it != first_route_.end();)
-                it = std::find(ids_.begin(), ids_.begin() + n, it->first) != ids_.begin() + n ? std::next(it) : first_route_.erase(it);
-    }
 
     // Plans `scenes` scenes of at most K robots over pos_/goal_ (n robots): scene b is robot b
     // and its nearest within the sensing radius (local), or all n robots in order. x_ holds the
@@ -4328,9 +4276,6 @@ private:
             }
             batch_.origin[b] = scene_origin(c, m, [&](int k) { return pos_[members_[k]]; });
             if (!shared) encode_map(batch_, b, map, c);
-            if (c.priority_context)  // robots without an id after those with one, in their order
-                priority_values(m, [&](int k) { return at_goal_[members_[k]] != 0; }, [&](int k) { return key_[members_[k]]; },
-                                [&](int k) { const int i = members_[k]; return ids_[i] >= 0 ? (long)ids_[i] : (long)INT_MAX + i; }, order_, priority_);
             for (int k = 0; k < K; ++k) {
                 const int a = b * K + k;
                 if (k >= m) {  // an empty slot
@@ -4345,8 +4290,7 @@ private:
                     if (line_start) line_window(i, a);
                     else warm = false;
                 }
-                encode_agent(batch_, a, /*slot*/ k, pos_[i], route_[i].goal, map, c, route_[i].final, vel_[i],
-                             c.priority_context ? priority_[k] : 1.0f);
+                encode_agent(batch_, a, /*slot*/ k, pos_[i], route_[i].goal, map, c, route_[i].final);
             }
             batch_.count[b] = m;
         }
@@ -4412,7 +4356,7 @@ inline PlanFollower make_follower(DiffusionPlanner& planner) {
 }
 
 // A team whose robots plan for themselves: each has its own planner (the same seed and settings)
-// and calls plan_robot with every other robot's position, goal, velocity and id, as if received
+// and calls plan_robot with every other robot's position, goal and id, as if received
 // from it, and its clock (the world's step). Robots may join and leave. Plan::plan_ms is per
 // robot: the team's plans run one after another here, each robot's on its own computer there.
 class DecentralisedTeam {
@@ -4430,10 +4374,10 @@ public:
             const Agent& me = agents[i];
             others_.clear();
             for (int j = 0; j < n; ++j)
-                if (j != i) others_.push_back({agents[j].pos, agents[j].goal, agents[j].vel, agents[j].id});
+                if (j != i) others_.push_back({agents[j].pos, agents[j].goal, agents[j].id});
             auto& planner = robots_[me.id];
             if (!planner) planner = std::make_unique<DiffusionPlanner>(model_->clone(), seed_, settings_);
-            planner->plan_robot(world.map(), me.id, me.pos, me.goal, others_, out.waypoints[i], me.vel, world.t());
+            planner->plan_robot(world.map(), me.id, me.pos, me.goal, others_, out.waypoints[i], world.t());
             out.ids[i] = me.id;
             // The team replans when the first robot asks to (one waits at a passage in its scene).
             const int after = planner->replan_after();

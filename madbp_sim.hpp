@@ -1668,10 +1668,9 @@ struct LinePlanner {
     }
 };
 
-// Priorities of the guided expert, the plan follower and the model's priority context (one
-// rule for all): robots still travelling go before robots at their goals, then the larger `key`
-// (how far the robot had to go when first seen), then the lower id. `order` receives 0 .. n-1,
-// first first.
+// Priorities of the guided expert and the plan follower (one rule for both): robots still
+// travelling go before robots at their goals, then the larger `key` (how far the robot had to go
+// when first seen), then the lower id. `order` receives 0 .. n-1, first first.
 template <class AtGoal, class Key, class Id>
 void priority_order(int n, AtGoal at_goal, Key key, Id id, std::vector<int>& order) {
     order.resize(n);

@@ -23,6 +23,7 @@
 // Configuration macros: none beyond madbp.hpp's.
 //
 // Changelog
+//   0.3  ModelConfig's velocity and priority contexts removed: DemoRoutes::first is gone.
 //   0.2  TrainState: one resumable scaffold, with run identity, for train, MAPPO and MADiff.
 //        Curve records (the tool draws the charts); ProgressFn; grad_clip names.
 //        DAgger: dagger, expert_label, dagger_rollouts.
@@ -586,26 +587,19 @@ struct WindowRef { int episode, t; };
 
 // What every agent of every demonstration is told to head for at every frame (route_goal; only
 // for a model with ModelConfig::subgoal_distance > 0): at[e][t * agents + i], t in [0, steps].
-// Computed once before training, as the planner computes it, on the unmirrored map. With
-// ModelConfig::priority_context, also each agent's priority key: its route steps from its start
-// (first[e][i]), as the expert that demonstrated the episode computed it.
+// Computed once before training, as the planner computes it, on the unmirrored map.
 struct DemoRoutes {
     std::vector<std::vector<RouteGoal>> at;
-    std::vector<std::vector<int>> first;
     const RouteGoal& get(const Demonstration& d, int e, int t, int i) const { return at[e][(size_t)std::min(t, d.steps) * d.agents + i]; }
 };
 inline DemoRoutes route_demos(const DemoSet& demos, const ModelConfig& mc, int threads = 1) {
     DemoRoutes r;
     r.at.resize(demos.episodes.size());
-    r.first.resize(demos.episodes.size());
-    if (mc.subgoal_distance <= 0 && !mc.priority_context) return r;
+    if (mc.subgoal_distance <= 0) return r;
 #pragma omp parallel for num_threads(std::max(1, threads)) schedule(dynamic, 8)
     for (int e = 0; e < (int)demos.episodes.size(); ++e) {
         const Demonstration& d = demos.episodes[e];
         RouteGuide guide;
-        if (mc.priority_context)
-            for (int i = 0; i < d.agents; ++i) r.first[e].push_back(guide.route_steps(d.map, d.position(0, i), d.goals[i]));
-        if (mc.subgoal_distance <= 0) continue;
         r.at[e].resize((size_t)(d.steps + 1) * d.agents);
         for (int t = 0; t <= d.steps; ++t)
             for (int i = 0; i < d.agents; ++i) r.at[e][(size_t)t * d.agents + i] = route_goal(guide, mc, d.map, d.position(t, i), d.goals[i]);
@@ -663,8 +657,7 @@ inline void make_train_batch(const DemoSet& demos, const std::vector<WindowRef>&
     tb.origin.setZero(2, A);
     tb.pinned.assign((size_t)H * A, 0.0f);
     tb.maps.resize(B);
-    std::vector<int> order(n), slots(mc.n_max), priority_order_buf;
-    std::vector<float> priority;
+    std::vector<int> order(n), slots(mc.n_max);
     for (int b = 0; b < B; ++b) {
         const WindowRef ref = windows[picks[b]];
         const Demonstration& d = demos.episodes[ref.episode];
@@ -679,17 +672,12 @@ inline void make_train_batch(const DemoSet& demos, const std::vector<WindowRef>&
         for (int i = 0; i < d.agents; ++i) std::swap(slots[i], slots[i + rng.uniform_int(mc.n_max - i)]);
         tb.scene.count[b] = d.agents;
         RouteGuide guide;  // only without `routes`
-        if (mc.priority_context)  // agent i of a demonstration has id i
-            priority_values(d.agents, [&](int i) { return WorldConfig{}.reached(d.position(ref.t, i), d.goals[i]); },
-                            [&](int i) { return routes ? routes->first[ref.episode].at(i) : guide.route_steps(d.map, d.position(0, i), d.goals[i]); },
-                            [](int i) { return i; }, priority_order_buf, priority);
         for (int i = 0; i < d.agents; ++i) {
             const int a = b * n + i, src = order[i];
             const Vec2 start = mir(d.position(ref.t, src));
             const RouteGoal rg = routes && mc.subgoal_distance > 0 ? routes->get(d, ref.episode, ref.t, src)
                                                                    : route_goal(guide, mc, d.map, d.position(ref.t, src), d.goals[src]);
-            const Vec2 vel = mc.velocity_context ? mir(d.vel.at((size_t)std::min(ref.t, d.steps) * d.agents + src)) : Vec2{0, 0};
-            encode_agent(tb.scene, a, slots[i], start, mir(rg.goal), tb.maps[b], mc, rg.final, vel, mc.priority_context ? priority[src] : 1.0f);
+            encode_agent(tb.scene, a, slots[i], start, mir(rg.goal), tb.maps[b], mc, rg.final);
             tb.origin.col(a) << (float)start.x, (float)start.y;
             for (int t = 0; t < H; ++t) {
                 const Vec2 p = mir(d.position(ref.t + t * stride, src)) - start;

@@ -784,7 +784,7 @@ TEST_CASE("planner: a plan of at most 4 robot windows draws small_plan_candidate
         CHECK(team.last_scene_batch().B == n);
         CHECK(team.last_plan_candidates() == (n == 2 ? 2 : 1));
         std::vector<DiffusionPlanner::Neighbour> others;
-        for (int j = 1; j < n; ++j) others.push_back({w.agents()[j].pos, w.agents()[j].goal, {0, 0}, w.agents()[j].id});
+        for (int j = 1; j < n; ++j) others.push_back({w.agents()[j].pos, w.agents()[j].goal, w.agents()[j].id});
         std::vector<Vec2> window;
         robot.plan_robot(w.map(), w.agents()[0].id, w.agents()[0].pos, w.agents()[0].goal, others, window);
         CHECK(robot.last_plan_candidates() == team.last_plan_candidates());
@@ -796,157 +796,12 @@ TEST_CASE("planner: a plan of at most 4 robot windows draws small_plan_candidate
     CHECK_THROWS_WITH_AS(bad.plan(make_random_world("obstacles", 6, 5)), doctest::Contains("small_plan_candidates"), std::invalid_argument);
 }
 
-TEST_CASE("velocity context: in the pose, mirrored in training, read by the planner; off by default") {
-    ModelConfig c = tiny_config();
-    CHECK_FALSE(c.velocity_context);
-    CHECK(c.pose_rows() == 4);
-    CHECK(c.to_metadata().count("velocity_context") == 0);  // files without it read as before
-    CHECK_FALSE(ModelConfig::from_metadata(c.to_metadata(), "t").velocity_context);
-    c.velocity_context = true;
-    CHECK(c.pose_rows() == 6);
-    CHECK(ModelConfig::from_metadata(c.to_metadata(), "t").velocity_context);
-    auto md = c.to_metadata();
-    md["velocity_context"] = "yes";
-    CHECK_THROWS_WITH_AS(ModelConfig::from_metadata(md, "f"), doctest::Contains("'velocity_context'"), std::runtime_error);
-    // A velocity in pose units is the window's displacement at it: H = 8 steps of dt = 0.1.
-    CHECK(c.velocity_unit() == doctest::Approx(7 * 0.1 / c.window_scale));
-    SceneBatch s;
-    s.resize(1, 2, c);
-    REQUIRE(s.pose.rows() == 6);
-    encode_agent(s, 0, 0, {0.1, 0}, {0.5, 0}, WorldMap{}, c, true, {0.3, -0.2});
-    CHECK(s.pose(2, 0) == doctest::Approx(0.5 / c.position_scale));  // the goal rows stay where they were
-    CHECK(s.pose(4, 0) == doctest::Approx(0.3 * c.velocity_unit()));
-    CHECK(s.pose(5, 0) == doctest::Approx(-0.2 * c.velocity_unit()));
-    // Training reads each robot's velocity at the window's first frame, mirrored with the scene.
-    DemoSet demos;
-    Demonstration d;
-    d.map = WorldMap{};
-    d.agents = 1, d.steps = 20, d.success = true;
-    d.goals = {{0.8, 0.4}};
-    for (int t = 0; t <= 20; ++t) d.pos.push_back({-0.8 + 0.02 * t, -0.4 + 0.01 * t}), d.vel.push_back({0.2 + 0.01 * t, 0.1});
-    demos.episodes = {d};
-    TrainConfig tc;
-    tc.batch = 16;
-    Rng rng(1);
-    TrainBatch tb;
-    make_train_batch(demos, {{0, 5}}, c, tc, 1, rng, tb);
-    for (int b = 0; b < tc.batch; ++b) {
-        const float mx = tb.origin(0, b) > 0 ? -1.0f : 1.0f, my = tb.origin(1, b) > 0 ? -1.0f : 1.0f;  // the scene's mirror
-        CHECK(tb.scene.pose(4, b * tb.scene.n) == doctest::Approx(mx * 0.25 * c.velocity_unit()));
-        CHECK(tb.scene.pose(5, b * tb.scene.n) == doctest::Approx(my * 0.1 * c.velocity_unit()));
-    }
-    // The planner reads the robots' velocities: the same scene, moving, plans another window.
-    World w = make_random_world("empty", 2, 1);
-    DiffusionPlanner still(MadbpModel(c, 3), 5), moving(MadbpModel(c, 3), 5);
-    const Plan a = still.plan(w);
-    w.set_state(w.agents()[0].id, w.agents()[0].pos, {0.3, 0});
-    const Plan b = moving.plan(w);
-    CHECK(norm(a.waypoints[0][3] - b.waypoints[0][3]) > 1e-6);
-    // Without the context, velocities change nothing.
-    c.velocity_context = false;
-    DiffusionPlanner p1(MadbpModel(c, 3), 5), p2(MadbpModel(c, 3), 5);
-    const Plan e = p1.plan(w);
-    w.set_state(w.agents()[0].id, w.agents()[0].pos, {0, 0});
-    const Plan f = p2.plan(w);
-    CHECK(norm(e.waypoints[0][3] - f.waypoints[0][3]) == 0);
-}
-
-TEST_CASE("priority context: the expert's order in the pose, in training and in the planner; off by default") {
-    ModelConfig c = tiny_config();
-    CHECK_FALSE(c.priority_context);
-    CHECK(c.to_metadata().count("priority_context") == 0);  // files without it read as before
-    c.priority_context = true;
-    CHECK(c.pose_rows() == 5);
-    c.velocity_context = true;
-    CHECK(c.pose_rows() == 7);  // position, goal, velocity, priority
-    const ModelConfig back = ModelConfig::from_metadata(c.to_metadata(), "t");
-    CHECK((back.priority_context && back.velocity_context));
-    auto md = c.to_metadata();
-    md["priority_context"] = "2";
-    CHECK_THROWS_WITH_AS(ModelConfig::from_metadata(md, "f"), doctest::Contains("'priority_context'"), std::runtime_error);
-    c.velocity_context = false;
-
-    // The rule: travelling before at goal, then the longer route, then the lower id; 1 down to 0.
-    std::vector<int> order;
-    std::vector<float> v;
-    const std::vector<bool> at_goal = {false, true, false, false};
-    const std::vector<double> key = {10, 50, 20, 10};
-    priority_values(4, [&](int i) { return at_goal[i]; }, [&](int i) { return key[i]; }, [](int i) { return 3 - i; }, order, v);
-    const std::vector<double> expected = {1.0 / 3, 0, 1, 2.0 / 3};  // 2 (key 20), 3 (key 10, id 0), 0 (id 3), 1 (at goal)
-    for (int i = 0; i < 4; ++i) CHECK(v[i] == doctest::Approx(expected[i]));
-    priority_values(1, [](int) { return false; }, [](int) { return 0.0; }, [](int i) { return i; }, order, v);
-    CHECK(v == std::vector<float>{1.0f});
-    SceneBatch s;
-    s.resize(1, 2, c);
-    encode_agent(s, 1, 1, {0.1, 0}, {0.5, 0}, WorldMap{}, c, true, {0, 0}, 0.25f);
-    CHECK(s.pose(4, 1) == 0.25f);
-    CHECK(s.pose(2, 1) == doctest::Approx(0.5 / c.position_scale));
-
-    // Route steps: the expert's wavefront, so around the barrier the longer way is the larger key.
+TEST_CASE("route steps: the guided expert's wavefront, so around a barrier the longer way is the larger key") {
     RouteGuide guide;
     WorldMap barrier;
     barrier.boxes.push_back({Vec2{-1.2, -0.05}, Vec2{0.6, 0.05}});  // the way through is at x > 0.6
     CHECK(guide.route_steps(WorldMap{}, {-0.5, 0}, {0.5, 0}) == doctest::Approx(1.0 / guide.cell).epsilon(0.1));
     CHECK(guide.route_steps(barrier, {0, -0.5}, {0, 0.5}) > 1.5 * guide.route_steps(WorldMap{}, {0, -0.5}, {0, 0.5}));
-
-    // Training: agent 1 had the longer way when the demonstration started, so it goes first
-    // (value 1) until it reaches its goal; from then on agent 0, still travelling, goes first.
-    DemoSet demos;
-    Demonstration d;
-    d.map = WorldMap{};
-    d.agents = 2, d.steps = 30, d.success = true;
-    d.goals = {{0.2, -0.5}, {0.2, 0.5}};
-    for (int t = 0; t <= 30; ++t) {
-        d.pos.push_back({-0.4 + 0.02 * std::min(t, 30), -0.5});  // agent 0: 0.6 to go, arrives at t = 30
-        d.pos.push_back({-0.8 + 0.1 * std::min(t, 10), 0.5});    // agent 1: 1.0 to go, arrives at t = 10
-        d.vel.push_back({0, 0}), d.vel.push_back({0, 0});
-    }
-    demos.episodes = {d};
-    TrainConfig tc;
-    tc.batch = 8;
-    for (int t : {0, 15}) {
-        Rng rng(3);
-        TrainBatch tb;
-        make_train_batch(demos, {{0, t}}, c, tc, 2, rng, tb);
-        for (int a = 0; a < tb.scene.B * tb.scene.n; ++a) {
-            const bool agent1 = std::abs(tb.origin(1, a) - (tb.origin(1, a) > 0 ? 0.5 : -0.5)) < 1e-6 &&
-                                std::abs(std::abs(tb.origin(0, a)) - std::abs(d.position(t, 1).x)) < 1e-6;  // mirrored or not
-            CHECK(tb.scene.pose(4, a) == (agent1 == (t == 0) ? 1.0f : 0.0f));
-        }
-    }
-
-    // The planner: the key is the route from where it first saw each robot, so moving a robot
-    // closer to its goal later does not change who goes first; a robot at its goal goes last.
-    World w(WorldMap{});
-    w.add_agent({-0.9, 0}, {0.9, 0});   // id 0: the longer way
-    w.add_agent({0.5, 0.3}, {-0.3, 0.3});  // id 1
-    DiffusionPlanner planner(MadbpModel(c, 3), 5);
-    planner.plan(w);
-    auto value = [&](int col) { return planner.last_scene_batch().pose(4, col); };
-    CHECK(value(0) == 1.0f);
-    CHECK(value(1) == 0.0f);
-    w.set_state(0, {0.7, 0}, {0, 0});  // now 0.2 from its goal, nearer than robot 1 is to its goal
-    planner.plan(w);
-    CHECK(value(0) == 1.0f);
-    w.set_state(0, {0.9, 0}, {0, 0});  // at its goal
-    planner.plan(w);
-    CHECK(value(0) == 0.0f);
-    CHECK(value(1) == 1.0f);
-    // A team whose robots keep being replaced: the keys of robots that left are forgotten, so
-    // the memory stays bounded by the team, not by every robot ever seen.
-    for (int k = 0; k < 600; ++k) {
-        const int leaving = w.agents()[0].id;
-        w.remove_agent(leaving);
-        w.add_agent({-0.5, -0.6}, {0.5, 0.6}, 2 + k);
-        planner.plan(w);
-    }
-    CHECK(planner.remembered_robots() <= 2 * 2 + 256 + 1);
-    CHECK(planner.remembered_robots() >= 2);
-    // Without the context the pose has no priority row.
-    c.priority_context = false;
-    DiffusionPlanner plain(MadbpModel(c, 3), 5);
-    plain.plan(w);
-    CHECK(plain.last_scene_batch().pose.rows() == 4);
 }
 
 TEST_CASE("sampler: the end bend makes a window that heads for its pinned goal arrive, and keeps one that leaves") {

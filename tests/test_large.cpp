@@ -209,14 +209,28 @@ TEST_CASE("large: the new model fields round-trip through checkpoints; a 0.1 che
     std::remove(path.c_str());
 }
 
+TEST_CASE("large: a checkpoint with the removed velocity or priority context loads only when it is off") {
+    const std::string path = "test_large_removed.safetensors";
+    const MadbpModel model(local_config(), 1);
+    for (const char* key : {"velocity_context", "priority_context"}) {
+        save_model(path, model, {{key, "0"}});  // 0 is the default: read as a file without the key
+        const MadbpModel off = load_model(path);
+        CHECK(off.config.to_metadata() == model.config.to_metadata());
+        CHECK(off.params->value == model.params->value);
+        save_model(path, model, {{key, "1"}});  // a model trained with it needs inputs the planner no longer gives
+        const std::string removed = path + ": metadata field '" + key + "' = 1: the option was removed in release 0.3";
+        CHECK_THROWS_WITH_AS(load_model(path), doctest::Contains(removed.c_str()), std::runtime_error);
+        save_model(path, model, {{key, "yes"}});
+        const std::string malformed = std::string("'") + key + "' must be 0 or 1";
+        CHECK_THROWS_WITH_AS(load_model(path), doctest::Contains(malformed.c_str()), std::runtime_error);
+    }
+    std::remove(path.c_str());
+}
+
 TEST_CASE("large: a robot planning for itself gets the window the team plan gives it (same seed)") {
     World world = make_random_world("obstacles", 5, 4, 2.4);
-    for (const Agent& a : world.agents()) world.set_state(a.id, a.pos, {0.05 * a.id - 0.1, 0.03 * a.id});  // moving robots
-    for (bool velocity : {false, true})
     for (bool conflict_aware : {false, true}) {
-        ModelConfig c = local_config();
-        c.velocity_context = velocity;  // then the velocities travel in Neighbour::vel and plan_robot's vel
-        c.priority_context = velocity;  // and the ids in Neighbour::id and plan_robot's id
+        const ModelConfig c = local_config();
         DiffusionPlanner team(MadbpModel(c, 2), 9);
         if (conflict_aware) team.settings.guidance.weight = 0.004f, team.settings.sampler.candidates = 2;
         const Plan plan = team.plan(world);
@@ -225,10 +239,10 @@ TEST_CASE("large: a robot planning for itself gets the window the team plan give
             robot.settings = team.settings;
             std::vector<DiffusionPlanner::Neighbour> others;
             for (int j = 0; j < world.size(); ++j)
-                if (j != i) others.push_back({world.agents()[j].pos, world.agents()[j].goal, world.agents()[j].vel, world.agents()[j].id});
+                if (j != i) others.push_back({world.agents()[j].pos, world.agents()[j].goal, world.agents()[j].id});
             std::vector<Vec2> window;
             const Agent& me = world.agents()[i];
-            robot.plan_robot(world.map(), me.id, me.pos, me.goal, others, window, me.vel);
+            robot.plan_robot(world.map(), me.id, me.pos, me.goal, others, window);
             CHECK(max_gap(window, plan.waypoints[i]) < 1e-4);  // one scene alone vs in a batch: the same numbers up to float summation order
         }
     }
@@ -276,7 +290,7 @@ TEST_CASE("large: plan_robot starts from its last windows when given its clock, 
     auto others_of = [](const World& w, int i, bool reversed) {
         std::vector<DiffusionPlanner::Neighbour> others;
         for (int j = 0; j < w.size(); ++j)
-            if (j != i) others.push_back({w.agents()[j].pos, w.agents()[j].goal, w.agents()[j].vel, w.agents()[j].id});
+            if (j != i) others.push_back({w.agents()[j].pos, w.agents()[j].goal, w.agents()[j].id});
         if (reversed) std::reverse(others.begin(), others.end());
         return others;
     };
@@ -297,10 +311,10 @@ TEST_CASE("large: plan_robot starts from its last windows when given its clock, 
         robot.settings.sampler.line_start = false;
         std::vector<Vec2> window;
         const Agent &me0 = start.agents()[i], &me = world.agents()[i];
-        robot.plan_robot(start.map(), me0.id, me0.pos, me0.goal, others_of(start, i, reversed), window, me0.vel, 0);
+        robot.plan_robot(start.map(), me0.id, me0.pos, me0.goal, others_of(start, i, reversed), window, 0);
         auto others = others_of(world, i, reversed);
         if (unknown_id) others[0].id = -1;
-        robot.plan_robot(world.map(), me.id, me.pos, me.goal, others, window, me.vel, second_step);
+        robot.plan_robot(world.map(), me.id, me.pos, me.goal, others, window, second_step);
         return window;
     };
     for (int i = 0; i < world.size(); ++i) {
@@ -315,7 +329,7 @@ TEST_CASE("large: plan_robot starts from its last windows when given its clock, 
     }
     DiffusionPlanner robot(MadbpModel(c, 2), 9);
     std::vector<Vec2> window;
-    CHECK_THROWS_WITH_AS(robot.plan_robot(world.map(), 0, {0, 0}, {1, 1}, {}, window, {0, 0}, -2), doctest::Contains("step"), std::invalid_argument);
+    CHECK_THROWS_WITH_AS(robot.plan_robot(world.map(), 0, {0, 0}, {1, 1}, {}, window, -2), doctest::Contains("step"), std::invalid_argument);
 }
 
 TEST_CASE("large: DecentralisedTeam plans each robot with plan_robot: first as the team's neighbourhood plan, then warm") {

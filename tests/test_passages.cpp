@@ -383,9 +383,9 @@ TEST_CASE("planner: plan_robot takes the team plan's turns when the neighbours' 
     // team's plan; without it (an unknown id ranks after a known one) it would go on.
     DiffusionPlanner own(MadbpModel(c, 1), 2);
     std::vector<Vec2> window;
-    own.plan_robot(world.map(), 1, {0, -0.15}, {0, 0.9}, {{{0, 0.15}, {0, -0.9}, {0, 0}, 0}}, window);
+    own.plan_robot(world.map(), 1, {0, -0.15}, {0, 0.9}, {{{0, 0.15}, {0, -0.9}, 0}}, window);
     CHECK(own.last_waiting()[0] == kWait);
-    own.plan_robot(world.map(), 1, {0, -0.15}, {0, 0.9}, {{{0, 0.15}, {0, -0.9}, {0, 0}, -1}}, window);
+    own.plan_robot(world.map(), 1, {0, -0.15}, {0, 0.9}, {{{0, 0.15}, {0, -0.9}, -1}}, window);
     CHECK(own.last_waiting()[0] == kGoOn);
 }
 

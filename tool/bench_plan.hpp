@@ -130,10 +130,10 @@ inline int bench_plan(Args& a) {
         const double expert_ms = expert.decision_ms();
         if (scenes > 1 && robot_K == 0) {  // one robot's own scene (plan_robot), from the first team planned in neighbourhoods
             std::vector<madbp::DiffusionPlanner::Neighbour> others;
-            for (int j = 1; j < world.size(); ++j) others.push_back({world.agents()[j].pos, world.agents()[j].goal, {0, 0}, world.agents()[j].id});
+            for (int j = 1; j < world.size(); ++j) others.push_back({world.agents()[j].pos, world.agents()[j].goal, world.agents()[j].id});
             std::vector<madbp::Vec2> window;
             const madbp::Agent& me = world.agents()[0];
-            auto plan_robot_at = [&](long step) { planner.plan_robot(world.map(), me.id, me.pos, me.goal, others, window, {0, 0}, step); };
+            auto plan_robot_at = [&](long step) { planner.plan_robot(world.map(), me.id, me.pos, me.goal, others, window, step); };
             for (int i = 0; i < 3; ++i) plan_robot_at(-1);
             auto r0 = std::chrono::steady_clock::now();
             for (int i = 0; i < plans; ++i) plan_robot_at(-1);

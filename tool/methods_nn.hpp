@@ -208,9 +208,6 @@ inline int cmd_train(Args& a) {
             "                     centre with a grid cropped around it, for any world size (default local)\n"
             "  --subgoal D        a goal farther than D world units, or out of view, is shown D away in the\n"
             "                     direction of the route around the map; 0 = off (default 1.5)\n"
-            "  --velocity         each robot's current velocity in its context (issue 12; default off)\n"
-            "  --priority         each robot's place in the guided expert's priority order in its context\n"
-            "                     (who gives way; issue 12; default off)\n"
             "  --checkpoint-every N (default 1000)   --seed S (default 0)\n"
             "  --threads T        data-parallel replicas (default 2); results depend on T, not on the machine\n"
             "  --json             print the final losses as JSON\n");
@@ -265,8 +262,6 @@ inline int cmd_train(Args& a) {
     if (frame != "world" && frame != "local") throw std::invalid_argument("--frame: expected world or local, got '" + frame + "'");
     mc.frame = frame == "local" ? madbp::SceneFrame::Local : madbp::SceneFrame::World;
     mc.subgoal_distance = (float)a.real("--subgoal", 1.5, 0, 100);
-    mc.velocity_context = a.flag("--velocity");
-    mc.priority_context = a.flag("--priority");
     mc.n_train_max = std::min(tc.n_train_max, mc.n_max);
     int threads = (int)a.integer("--threads", 2, 1, 256);
     bool json = a.flag("--json");
