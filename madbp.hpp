@@ -90,16 +90,16 @@
 //     DecentralisedTeam                                                                [8]
 //
 // Changelog
-//   0.3  PlannerConfig: every planner setting in one struct (neighbourhood, sampler, guidance,
-//        traffic, follower), defaults written once; tuned() (the default) and paper() presets;
-//        planner_settings(), the table behind validate(), set() and the tool's --set.
-//        DiffusionPlanner::settings replaces its public fields and `sampler` (now sampler());
-//        the kDefault* constants and planner_sample_steps are gone (their values: PlannerConfig).
-//        PassageControl moves here from madbp_sim.hpp (Section 8); PassageParams is TrafficConfig.
-//        make_follower; DecentralisedTeam (from the tool). default_model_path.
+//   0.3  PlannerConfig: every planner setting in one struct, its defaults written once.
+//        PlannerConfig::tuned() (the default) and paper() (the paper's planner) presets.
+//        planner_settings(): one table behind validate(), set(), --set and --list-settings.
+//        DiffusionPlanner::settings replaces its public fields; sampler() resolves the sampler.
+//        The kDefault* constants and planner_sample_steps are gone (PlannerConfig holds them).
+//        PassageControl moves here (Section 8); PassageParams becomes TrafficConfig.
+//        make_follower(planner); DecentralisedTeam moves here from the tool.
+//        default_model_path(): $MADBP_MODEL, the install, the checkout.
 //        detail::ddim_loop: one DDIM loop for the plain, guided and MADiff samplers.
-//        ModelConfig::velocity_context and priority_context removed (with priority_values,
-//        Neighbour::vel and plan_robot's `vel`); a checkpoint that sets either is refused.
+//        velocity_context and priority_context removed; a checkpoint setting either is refused.
 //   0.2  One FilmUNet, ContextEncoder and TrajectoryProcessor; one world-to-model encoder.
 //        BatchNorm statistics in ParamStore::state; optimizer-state I/O moved to madbp_train.hpp.
 //        The Local scene frame, route subgoals, ModelConfig::n_train_max (absent = as in 0.1).

@@ -19,8 +19,7 @@
 //
 // Changelog
 //   0.3  PassageControl and its parameters move to madbp.hpp (the planner's traffic conventions).
-//        ClearanceGrid moves to Section 2; interaction scenes check reachability on its layout
-//        (detail::all_reachable; ReachGrid, a second cell grid, is gone).
+//        ClearanceGrid moves to Section 2; ReachGrid is gone (detail::all_reachable on its layout).
 //   0.2  ProgressFn instead of printing; Policy::decision_ms.
 //        Map is now WorldMap (no clash with Eigen::Map), with operator==; local_crop moved here.
 //        PlanFollower's filter weighs robots as the expert does (FollowerConfig::priority_weight).
