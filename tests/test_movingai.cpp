@@ -1,10 +1,6 @@
 // Tests of the MovingAI benchmark import (movingai_scene) and of a scene's default step limit
 // (scene_step_limit): issue 46, items 2 and 3.
-#include <doctest/doctest.h>
-
-#include "madbp_sim.hpp"
-
-using namespace madbp;
+#include "limits_helpers.hpp"  // error_of, TempDir
 
 namespace {
 // 6 x 5, every terrain character; one-cell aisle 'S' at column 3 of row 2 joins rows 1 and 3.
@@ -25,12 +21,7 @@ const std::string kScen =
 
 // The message movingai_scene throws for these texts, or "" when it accepts them.
 std::string refusal(const std::string& map, const std::string& scen, int agents = 2, double cell = 0.3, int offset = 0) {
-    try {
-        movingai_scene(map, "t.map", scen, "t.scen", agents, cell, offset);
-    } catch (const std::invalid_argument& e) {
-        return e.what();
-    }
-    return "";
+    return error_of([&] { movingai_scene(map, "t.map", scen, "t.scen", agents, cell, offset); });
 }
 std::string replaced(std::string s, const std::string& from, const std::string& to) {
     const size_t at = s.find(from);
@@ -75,6 +66,17 @@ TEST_CASE("movingai: a hand-written map and scenario convert, cell for cell, and
     CHECK(again.goals == scene.goals);
     CHECK(again.comments.empty());
     CHECK(scene_text(again) == text.substr(0, 14) + text.substr(text.find("world ")));  // comments are all that is lost
+
+    // From files: the same scene; errors name the path.
+    TempDir dir;
+    write_file_atomic(dir.file("t.map"), kMap);
+    write_file_atomic(dir.file("t.scen"), kScen);
+    const Scene loaded = load_movingai_scene(dir.file("t.map"), dir.file("t.scen"), 2);
+    CHECK(loaded.map == scene.map);
+    CHECK(loaded.starts == scene.starts);
+    CHECK(error_of([&] { load_movingai_scene(dir.file("t.map"), dir.file("t.scen"), 3); }) ==
+          dir.file("t.scen") + ":3: has 2 scenario rows; offset 0 + 3 agents needs 3");
+    CHECK(starts_with(error_of([&] { load_movingai_scene(dir.file("none.map"), dir.file("t.scen"), 2); }), dir.file("none.map") + ": cannot open"));
 
     // --offset: robot 0 takes row 1; a square map has no margin boxes.
     const Scene one = movingai_scene(kMap, "t.map", kScen, "t.scen", 1, 0.3, 1);
