@@ -116,11 +116,11 @@ dagger: all $(BUILD)/demos-mix.bin
 	  --scenarios all:0.5 --steps 3000 --threads 2 --set follower.priority_weight=1 --resume
 
 # libFuzzer targets tests/fuzz_NAME.cpp (ASan + UBSan): checkpoint reader, scene parser,
-# dataset reader, the tool's flag parser (args). `make fuzz` builds them all (`make fuzz-build` only builds) and runs each for
+# dataset reader, the tool's flag parser (args), MovingAI import (movingai). `make fuzz` builds them all (`make fuzz-build` only builds) and runs each for
 # FUZZ_SECONDS (600 for the release check) on build/fuzz-corpus/NAME, seeded from
 # tests/fuzz-seeds (checkpoint) or tests/fuzz-seeds-NAME; FUZZ_TARGETS=scene runs some.
 FUZZ_SECONDS ?= 60
-FUZZ_TARGETS ?= checkpoint scene dataset args
+FUZZ_TARGETS ?= checkpoint scene dataset args movingai
 FUZZ_CXXFLAGS := -std=c++17 -O1 -g -fopenmp -fsanitize=fuzzer,address,undefined $(INCLUDES)
 fuzz-build: deps
 	@mkdir -p $(BUILD)

@@ -20,6 +20,9 @@
 // Changelog
 //   0.3  PassageControl and its parameters move to madbp.hpp (the planner's traffic conventions).
 //        ClearanceGrid moves to Section 2; ReachGrid is gone (detail::all_reachable on its layout).
+//        movingai_scene / load_movingai_scene: MovingAI MAPF benchmark maps and scenarios as scenes.
+//        Scene::comments (scene_text writes them); scene_text(Scene).
+//        default_max_steps moves here from the tool; scene_step_limit follows the longest route.
 //   0.2  ProgressFn instead of printing; Policy::decision_ms.
 //        Map is now WorldMap (no clash with Eigen::Map), with operator==; local_crop moved here.
 //        PlanFollower's filter weighs robots as the expert does (FollowerConfig::priority_weight).
@@ -155,14 +158,16 @@ inline std::string number_text(double v) {
 //   4b interaction scenes: interaction_scenarios, make_interaction_world      (issue 12)
 //   5 occupancy grid: Grid, occupancy_grid, local_crop                           [2, 5]
 //   6 scene files: Scene, parse_scene, load_scene, scene_text, make_world        [2]
+//     MovingAI benchmark maps: movingai_scene, load_movingai_scene
 //     files: read_bounded, EnvironmentError, check_output, OutputLock, write_file_atomic
 //   7 controllers: Policy, StepModel                                             [3]
 //   8 CLF-QP: ClfQpParams, clf_qp_solve, clf_qp_action, ClfQp                    [3.1]
 //   9 tracker and safety filter: track_waypoint, track_plan, safety_filter       [3.2]
 //  10 plans: Plan, Planner, validate_plan, waypoint_now, LinePlanner, PlanFollower [3.2, 3.5, 8]
-//  11 episodes and evaluation: EpisodeLog, run_episode, evaluate                 [9, 10]
+//  11 episodes and evaluation: EpisodeLog, run_episode, default_max_steps, evaluate [9, 10]
 //  12 guided expert: wavefront, ClosedCells, RouteGoal, RouteGuide (route subgoals),
-//     ExpertParams, GuidedExpert (one-lane passages: the planner's, madbp.hpp)   [3.6]
+//     ExpertParams, GuidedExpert (one-lane passages: the planner's, madbp.hpp),
+//     scene_step_limit (a scene's default step limit follows its routes)     [3.6]
 //  13 SVG: render_svg, write_text_file                                           [2]
 
 #include <algorithm>
@@ -1037,6 +1042,9 @@ inline void local_crop(const WorldMap& map, Vec2 p, int Gl, double extent, float
 struct Scene {
     WorldMap map;
     std::vector<Vec2> starts, goals;
+    // Lines scene_text writes as '# ' comments after the header (where the scene came from, e.g.
+    // a MovingAI import's files and rows); parse_scene skips comments, so reading leaves it empty.
+    std::vector<std::string> comments;
 };
 
 // Parses the line-based scene format:
@@ -1361,20 +1369,276 @@ inline Scene load_scene(const std::string& path) {
     detail::read_bounded(path, kMaxSceneBytes, "kMaxSceneBytes", text);
     return parse_scene(text, path);
 }
-// The scene format of a world's current problem (agents at their current positions).
-inline std::string scene_text(const World& world) {
+// The scene format of `scene`: numbers with 17 digits (parse_scene reads back the same
+// doubles), comments after the header (a line break inside one becomes a space).
+inline std::string scene_text(const Scene& scene) {
     std::ostringstream o;
     o.precision(17);
-    o << "madbp-scene 1\nworld " << world.map().half_size << "\n";
-    for (const Disc& d : world.map().discs) o << "disc " << d.c.x << " " << d.c.y << " " << d.r << "\n";
-    for (const Box& b : world.map().boxes) o << "box " << b.lo.x << " " << b.lo.y << " " << b.hi.x << " " << b.hi.y << "\n";
-    for (const Agent& a : world.agents()) o << "agent " << a.pos.x << " " << a.pos.y << " " << a.goal.x << " " << a.goal.y << "\n";
+    o << "madbp-scene 1\n";
+    for (std::string c : scene.comments) {
+        std::replace(c.begin(), c.end(), '\n', ' ');
+        std::replace(c.begin(), c.end(), '\r', ' ');
+        o << "# " << c << "\n";
+    }
+    o << "world " << scene.map.half_size << "\n";
+    for (const Disc& d : scene.map.discs) o << "disc " << d.c.x << " " << d.c.y << " " << d.r << "\n";
+    for (const Box& b : scene.map.boxes) o << "box " << b.lo.x << " " << b.lo.y << " " << b.hi.x << " " << b.hi.y << "\n";
+    for (size_t i = 0; i < scene.starts.size(); ++i)
+        o << "agent " << scene.starts[i].x << " " << scene.starts[i].y << " " << scene.goals[i].x << " " << scene.goals[i].y << "\n";
     return o.str();
+}
+// The scene format of a world's current problem (agents at their current positions).
+inline std::string scene_text(const World& world) {
+    Scene scene;
+    scene.map = world.map();
+    for (const Agent& a : world.agents()) scene.starts.push_back(a.pos), scene.goals.push_back(a.goal);
+    return scene_text(scene);
 }
 inline World make_world(const Scene& scene, WorldConfig cfg = WorldConfig{}) {
     World world(scene.map, cfg);
     for (size_t i = 0; i < scene.starts.size(); ++i) world.add_agent(scene.starts[i], scene.goals[i]);
     return world;
+}
+
+// ---------------------------------------------------------------------------------------------
+// MovingAI MAPF benchmark import (Sturtevant, "Benchmarks for grid-based pathfinding", 2012;
+// Stern et al., SoCS 2019). A .map file is the header "type octile", "height H", "width W",
+// "map", then H rows of W characters; a .scen file is "version 1", then rows of 9 tab-separated
+// fields: bucket, map name, map width, map height, start x, start y, goal x, goal y, optimal
+// length; x is the column, y the row, row 0 at the top. docs/formats.md has the placement.
+constexpr size_t kMaxMovingAiBytes = 1 << 24;  // a .map or .scen file, bytes
+constexpr int kMaxMovingAiSide = 4096;         // width or height of a .map, cells
+
+namespace detail {
+// The terrain of a .map character: 0 passable ('.', 'G' ground, 'S' swamp: slow for a walker,
+// not a wall), 1 blocked ('@', 'O' out of bounds, 'T' trees, 'W' water: a robot cannot cross
+// it), -1 not a terrain character.
+inline int movingai_blocked(char c) {
+    if (c == '.' || c == 'G' || c == 'S') return 0;
+    if (c == '@' || c == 'O' || c == 'T' || c == 'W') return 1;
+    return -1;
+}
+// `text` split at '\n', each line without a trailing '\r' (files written on Windows).
+inline std::vector<std::string> text_lines(const std::string& text) {
+    std::vector<std::string> lines;
+    std::istringstream in(text);
+    for (std::string line; std::getline(in, line);) {
+        if (!line.empty() && line.back() == '\r') line.pop_back();
+        lines.push_back(line);
+    }
+    return lines;
+}
+inline std::vector<std::string> split_fields(const std::string& line, char sep) {
+    std::vector<std::string> out;
+    size_t start = 0;
+    for (size_t at; (at = line.find(sep, start)) != std::string::npos; start = at + 1) out.push_back(line.substr(start, at - start));
+    out.push_back(line.substr(start));
+    return out;
+}
+inline std::vector<std::string> words(const std::string& line) {
+    std::istringstream ls(line);
+    std::vector<std::string> out;
+    for (std::string w; ls >> w;) out.push_back(w);
+    return out;
+}
+// `s` is wholly an integer (long) or a finite number; false when not.
+inline bool parse_whole(const std::string& s, long& v) {
+    size_t pos = 0;
+    try { v = std::stol(s, &pos); } catch (...) { return false; }
+    return !s.empty() && pos == s.size();
+}
+inline bool parse_whole(const std::string& s, double& v) {
+    size_t pos = 0;
+    try { v = std::stod(s, &pos); } catch (...) { return false; }
+    return !s.empty() && pos == s.size() && std::isfinite(v);
+}
+[[noreturn]] inline void fail_at(const std::string& source, size_t line, const std::string& why) {
+    throw std::invalid_argument(printable(source, 256) + ":" + std::to_string(line) + ": " + why);
+}
+inline std::string base_name(const std::string& path) {
+    const size_t slash = path.find_last_of("/\\");
+    return slash == std::string::npos ? path : path.substr(slash + 1);
+}
+// The blocked cells of a W x H map (blocked[row * W + col], row 0 at the top) as boxes: the
+// runs of each row, and a run repeated on the rows below it merged into one taller box. The
+// map's left edge is x0 and its top edge y_top, cells `cell` wide.
+inline std::vector<Box> merge_blocked(const std::vector<uint8_t>& blocked, long W, long H, double cell, double x0, double y_top) {
+    std::vector<Box> boxes;
+    std::map<std::pair<long, long>, long> open, still;  // run [c0, c1) -> its top row
+    auto close = [&](std::pair<long, long> run, long top, long bottom) {  // rows [top, bottom)
+        boxes.push_back({{x0 + run.first * cell, y_top - bottom * cell}, {x0 + run.second * cell, y_top - top * cell}});
+    };
+    for (long row = 0; row <= H; ++row) {
+        still.clear();
+        for (long col = 0; row < H && col < W;) {
+            if (!blocked[row * W + col]) { ++col; continue; }
+            const long c0 = col;
+            while (col < W && blocked[row * W + col]) ++col;
+            auto it = open.find({c0, col});
+            still[{c0, col}] = it == open.end() ? row : it->second;
+            if (it != open.end()) open.erase(it);
+        }
+        for (const auto& run : open) close(run.first, run.second, row);
+        open.swap(still);
+    }
+    return boxes;
+}
+}  // namespace detail
+
+// A scene from a MovingAI map and scenario (texts; the sources name them in messages):
+// robots i = 0..agents-1 take scenario rows offset + i (rows counted from 0 after the version
+// line). Placement, tight fit: the W x H cells, each `cell` wide, centred in a square world of
+// half-size max(W, H) * cell / 2; the margin beside a map that is not square is blocked by
+// boxes (robots stay on the map); map row r, column c has its centre at
+// (-W cell / 2 + (c + 0.5) cell, H cell / 2 - (r + 0.5) cell). Blocked cells become boxes
+// (detail::merge_blocked); starts and goals sit at cell centres. The scene's comments name the
+// files and rows. Throws std::invalid_argument "<file>:<line>: <why>" on a bad header, row length
+// or character, a scenario row with a wrong field count or a field that is not a number, a map
+// name or size that differs from the map's, a start or goal outside the map, on a blocked cell,
+// closer than `radius` to an obstacle (cell < 2 radius) or closer than 2 radius to another's,
+// too few rows; "<file>: <why>" on a world over kMaxHalfSize or more boxes than kMaxObstacles.
+inline Scene movingai_scene(const std::string& map_text, const std::string& map_source, const std::string& scen_text,
+                            const std::string& scen_source, int agents, double cell = 0.3, int offset = 0, double radius = 0.1) {
+    if (agents < 1 || agents > kMaxSceneAgents)
+        throw std::invalid_argument("agents: " + std::to_string(agents) + " is out of range [1, kMaxSceneAgents = " + std::to_string(kMaxSceneAgents) + "]");
+    if (offset < 0) throw std::invalid_argument("offset: must be >= 0 (got " + std::to_string(offset) + ")");
+    if (!(cell > 0) || !std::isfinite(cell)) throw std::invalid_argument("cell: must be a finite number > 0 (got " + number_text(cell) + ")");
+    for (const auto* t : {&map_text, &scen_text})
+        if (t->size() > kMaxMovingAiBytes)
+            throw std::invalid_argument(printable(t == &map_text ? map_source : scen_source, 256) + ": " + std::to_string(t->size()) +
+                                        " bytes exceed the limit kMaxMovingAiBytes = " + std::to_string(kMaxMovingAiBytes));
+    // The map: its header, then exactly H rows of W terrain characters.
+    const std::vector<std::string> mlines = detail::text_lines(map_text);
+    long W = -1, H = -1;
+    bool typed = false;
+    size_t ln = 0;  // index of the line after 'map'
+    for (bool at_map = false; !at_map; ++ln) {
+        if (ln == mlines.size()) detail::fail_at(map_source, ln, "no 'map' line (expected the header 'type octile', 'height H', 'width W', 'map')");
+        const std::vector<std::string> w = detail::words(mlines[ln]);
+        if (w.empty()) continue;
+        if (w.size() == 1 && w[0] == "map") {
+            if (!typed || W < 0 || H < 0) detail::fail_at(map_source, ln + 1, "'map' before the header's 'type', 'height' and 'width' lines");
+            at_map = true;
+        } else if (w.size() == 2 && w[0] == "type") {
+            if (w[1] != "octile") detail::fail_at(map_source, ln + 1, "map type '" + printable(w[1]) + "' (this reader knows octile)");
+            typed = true;
+        } else if (w.size() == 2 && (w[0] == "height" || w[0] == "width")) {
+            long& v = w[0] == "height" ? H : W;
+            if (v >= 0) detail::fail_at(map_source, ln + 1, "'" + w[0] + "' given twice");
+            if (!detail::parse_whole(w[1], v) || v < 1 || v > kMaxMovingAiSide)
+                detail::fail_at(map_source, ln + 1, w[0] + ": '" + printable(w[1]) + "' is not an integer in [1, kMaxMovingAiSide = " +
+                                                        std::to_string(kMaxMovingAiSide) + "]");
+        } else {
+            detail::fail_at(map_source, ln + 1, "unexpected header line '" + printable(mlines[ln]) + "' (expected 'type octile', 'height H', 'width W' or 'map')");
+        }
+    }
+    std::vector<uint8_t> blocked((size_t)(W * H));
+    for (long row = 0; row < H; ++row) {
+        const size_t at = ln + (size_t)row;
+        if (at >= mlines.size())
+            detail::fail_at(map_source, mlines.size(), "the map has " + std::to_string(row) + " rows, its header says height " + std::to_string(H));
+        const std::string& s = mlines[at];
+        if ((long)s.size() != W)
+            detail::fail_at(map_source, at + 1, "row " + std::to_string(row) + " has " + std::to_string(s.size()) + " characters, the header says width " + std::to_string(W));
+        for (long col = 0; col < W; ++col) {
+            const int b = detail::movingai_blocked(s[col]);
+            if (b < 0) detail::fail_at(map_source, at + 1, "unknown terrain '" + printable(s.substr(col, 1)) + "' in column " + std::to_string(col) + " (expected . G S passable, @ O T W blocked)");
+            blocked[row * W + col] = (uint8_t)b;
+        }
+    }
+    for (size_t at = ln + H; at < mlines.size(); ++at)
+        if (!detail::words(mlines[at]).empty()) detail::fail_at(map_source, at + 1, "more rows than the header's height " + std::to_string(H));
+
+    // The scenario: every row's fields are checked; the rows used, their cells.
+    struct Row { size_t line; long v[7]; double optimal; std::string map_name; };  // v: bucket, width, height, sx, sy, gx, gy
+    static const char* const names[] = {"bucket", "map name", "map width", "map height", "start x", "start y", "goal x", "goal y", "optimal length"};
+    const std::vector<std::string> slines = detail::text_lines(scen_text);
+    std::vector<Row> rows;
+    bool versioned = false;
+    const std::string map_base = detail::base_name(map_source);
+    const bool named = map_base.size() > 4 && map_base.compare(map_base.size() - 4, 4, ".map") == 0;
+    for (size_t at = 0; at < slines.size(); ++at) {
+        const std::vector<std::string> w = detail::words(slines[at]);
+        if (w.empty()) continue;
+        if (!versioned) {
+            if (w.size() != 2 || w[0] != "version" || (w[1] != "1" && w[1] != "1.0"))
+                detail::fail_at(scen_source, at + 1, "expected the header 'version 1'");
+            versioned = true;
+            continue;
+        }
+        const std::vector<std::string> f = detail::split_fields(slines[at], '\t');
+        if (f.size() != 9)
+            detail::fail_at(scen_source, at + 1, "expected 9 tab-separated fields (bucket, map, width, height, start x, start y, goal x, goal y, optimal length), got " + std::to_string(f.size()));
+        Row r{at + 1, {}, 0, f[1]};
+        for (int k = 0, slot = 0; k < 9; ++k) {
+            if (k == 1) continue;
+            if (k == 8 ? !detail::parse_whole(f[k], r.optimal) : !detail::parse_whole(f[k], r.v[slot++]))
+                detail::fail_at(scen_source, at + 1, std::string(names[k]) + ": '" + printable(f[k]) + "' is not " + (k == 8 ? "a number" : "an integer"));
+        }
+        if (named && detail::base_name(r.map_name) != map_base)
+            detail::fail_at(scen_source, at + 1, "the row is for map '" + printable(r.map_name) + "', not " + printable(map_base));
+        if (r.v[1] != W || r.v[2] != H)
+            detail::fail_at(scen_source, at + 1, "map size " + std::to_string(r.v[1]) + " x " + std::to_string(r.v[2]) + " differs from the map's " +
+                                                     std::to_string(W) + " x " + std::to_string(H));
+        rows.push_back(r);
+    }
+    if (!versioned) detail::fail_at(scen_source, slines.size(), "empty scenario: expected the header 'version 1'");
+    if (rows.size() < (size_t)offset + (size_t)agents)
+        detail::fail_at(scen_source, slines.size(), "has " + std::to_string(rows.size()) + " scenario rows; offset " + std::to_string(offset) +
+                                                        " + " + std::to_string(agents) + " agents needs " + std::to_string((size_t)offset + agents));
+
+    // Placement: the map's square, centred; blocked cells and the margin become boxes.
+    const double half = std::max(W, H) * cell / 2, x0 = -W * cell / 2, y_top = H * cell / 2;
+    if (half > kMaxHalfSize)
+        throw std::invalid_argument(printable(map_source, 256) + ": " + std::to_string(std::max(W, H)) + " cells of " + number_text(cell) +
+                                    " make a world of half-size " + number_text(half) + ", over the limit kMaxHalfSize = " + number_text(kMaxHalfSize) + " (use a smaller cell)");
+    if (!(half > 2 * radius))
+        throw std::invalid_argument(printable(map_source, 256) + ": the world's half-size " + number_text(half) + " must be > " + number_text(2 * radius) + " (use a larger cell)");
+    Scene scene;
+    scene.map.half_size = half;
+    scene.map.boxes = detail::merge_blocked(blocked, W, H, cell, x0, y_top);
+    if (W < H) scene.map.boxes.insert(scene.map.boxes.end(), {Box{{-half, -half}, {x0, half}}, Box{{-x0, -half}, {half, half}}});
+    if (H < W) scene.map.boxes.insert(scene.map.boxes.end(), {Box{{-half, -half}, {half, -y_top}}, Box{{-half, y_top}, {half, half}}});
+    if (scene.map.boxes.size() > (size_t)kMaxObstacles)
+        throw std::invalid_argument(printable(map_source, 256) + ": its blocked cells need " + std::to_string(scene.map.boxes.size()) +
+                                    " boxes (row runs merged), over the limit kMaxObstacles = " + std::to_string(kMaxObstacles));
+    scene.comments.push_back("MovingAI map " + printable(map_source, 256) + " (" + std::to_string(W) + " x " + std::to_string(H) + " cells of " +
+                             number_text(cell) + "), scenario " + printable(scen_source, 256) + " rows " + std::to_string(offset) + ".." +
+                             std::to_string(offset + agents - 1) + " (row 0 follows 'version 1'); cell (c, r) at (" + number_text(x0) +
+                             " + (c + 0.5) " + number_text(cell) + ", " + number_text(y_top) + " - (r + 0.5) " + number_text(cell) + ")");
+    for (int i = 0; i < agents; ++i) {
+        const Row& r = rows[(size_t)offset + i];
+        const std::string row_name = "scenario row " + std::to_string(offset + i);
+        for (int which = 0; which < 2; ++which) {
+            const long col = r.v[3 + 2 * which], row = r.v[4 + 2 * which];
+            const char* name = which == 0 ? "start" : "goal";
+            const std::string at = " (" + std::to_string(col) + ", " + std::to_string(row) + ")";
+            if (col < 0 || col >= W || row < 0 || row >= H)
+                detail::fail_at(scen_source, r.line, std::string(name) + at + " is outside the " + std::to_string(W) + " x " + std::to_string(H) + " map");
+            if (blocked[row * W + col]) detail::fail_at(scen_source, r.line, std::string(name) + at + " is on a blocked cell '" + mlines[ln + row][col] + "'");
+            const Vec2 p{x0 + (col + 0.5) * cell, y_top - (row + 0.5) * cell};
+            if (static_clearance(scene.map, p) < radius)
+                detail::fail_at(scen_source, r.line, std::string(name) + at + " is closer than a robot's radius " + number_text(radius) +
+                                                         " to a blocked cell or wall (cell " + number_text(cell) + " < " + number_text(2 * radius) + ")");
+            std::vector<Vec2>& same = which == 0 ? scene.starts : scene.goals;
+            for (int j = 0; j < i; ++j)
+                if (norm(same[j] - p) < 2 * radius)
+                    detail::fail_at(scen_source, r.line, std::string(name) + at + " overlaps the " + name + " of scenario row " + std::to_string(offset + j) +
+                                                             " (line " + std::to_string(rows[(size_t)offset + j].line) + ")");
+            same.push_back(p);
+        }
+        scene.comments.push_back("agent " + std::to_string(i) + ": " + row_name + " (line " + std::to_string(r.line) + "): start (" +
+                                 std::to_string(r.v[3]) + ", " + std::to_string(r.v[4]) + ") goal (" + std::to_string(r.v[5]) + ", " +
+                                 std::to_string(r.v[6]) + ") optimal length " + number_text(r.optimal));
+    }
+    return scene;
+}
+// movingai_scene of two files (each at most kMaxMovingAiBytes; a directory or device is refused).
+inline Scene load_movingai_scene(const std::string& map_path, const std::string& scen_path, int agents, double cell = 0.3, int offset = 0) {
+    std::string map_text, scen_text;
+    detail::read_bounded(map_path, kMaxMovingAiBytes, "kMaxMovingAiBytes", map_text);
+    detail::read_bounded(scen_path, kMaxMovingAiBytes, "kMaxMovingAiBytes", scen_text);
+    return movingai_scene(map_text, map_path, scen_text, scen_path, agents, cell, offset);
 }
 
 
@@ -1911,6 +2175,11 @@ inline World make_episode_world(const EvalConfig& c, uint64_t seed) {
     if (!c.scenario.empty()) return make_interaction_world(c.scenario, c.map, c.agents, seed, c.half_size, c.world);
     return make_random_world(c.map, c.agents, seed, c.half_size, c.world);
 }
+// The default episode step limit of a world of half-size h: 100 steps in the standard world
+// (half-size 1.2), scaled with the world's side, since crossing it takes proportionally longer.
+// A scene's default is scene_step_limit (Section 12), which also follows its routes.
+inline int default_max_steps(double half_size) { return (int)std::ceil(100 * half_size / 1.2 - 1e-9); }
+
 inline EvalResult evaluate(const EvalConfig& c, const PolicyFactory& factory) {
     if (c.episodes < 1) throw std::invalid_argument("episodes: must be >= 1 (got " + std::to_string(c.episodes) + ")");
     if (!c.scene) make_episode_world(c, c.seed);  // fail early and clearly on a bad map name or count
@@ -2424,6 +2693,59 @@ private:
         return path;
     }
 };
+
+// ---------------------------------------------------------------------------------------------
+// The default step limit of a scene (eval and render --scene): twice the longest robot's
+// shortest route at cruise speed, and never below default_max_steps(half-size), so that a maze
+// does not time out by default. A route is a walk on a grid of kStepLimitCell cells (at most
+// kStepLimitGridSide a side: a larger world gets coarser cells) through the cell centres a robot
+// of `radius` fits at, one cell per move in 8 directions: at cruise a robot covers
+// ExpertParams::cell (0.036) per step along each axis, so a move takes cell / 0.036 steps. Its
+// own grid, not the expert's: a 0.3-wide aisle leaves a 0.1-wide band for a robot's centre, which
+// 0.05 cells always sample but the expert's (clearance 0.13, cells up to 2 h / 192) may miss. A
+// robot with no route on the grid counts its straight (Chebyshev) distance. Memory: 12 bytes a
+// cell (12 MiB at most); time: one wavefront per robot.
+constexpr double kStepLimitCell = 0.05;
+constexpr int kStepLimitGridSide = 1024;
+namespace detail {
+// `cg.clear` on its layout: 1 where a robot centre of `radius` fits (clear of walls and
+// obstacles), else 0. Each obstacle marks only the cells near it: thousands of boxes stay fast.
+inline void fill_fits(ClearanceGrid& cg, const WorldMap& map, double radius) {
+    const int n = cg.n;
+    cg.clear.assign((size_t)n * n, 1.f);
+    auto mark = [&](Vec2 lo, Vec2 hi, auto&& blocks) {  // cells with centres in [lo, hi] that blocks(centre)
+        auto index = [&](double v) { return std::clamp((int)std::floor((v + cg.half) / cg.cell), 0, n - 1); };
+        for (int row = index(lo.y); row <= index(hi.y); ++row)
+            for (int col = index(lo.x); col <= index(hi.x); ++col)
+                if (blocks(cg.centre(row * n + col))) cg.clear[(size_t)row * n + col] = 0;
+    };
+    const double h = map.half_size;
+    mark({-h, -h}, {h, h}, [&](Vec2 p) { return std::max(std::fabs(p.x), std::fabs(p.y)) > h - radius; });
+    for (const Disc& d : map.discs) {
+        const double r = d.r + radius;
+        mark(d.c - Vec2{r, r}, d.c + Vec2{r, r}, [&](Vec2 p) { return norm(p - d.c) < r; });
+    }
+    for (const Box& b : map.boxes)
+        mark(b.lo - Vec2{radius, radius}, b.hi + Vec2{radius, radius}, [&](Vec2 p) { return box_distance(b, p) < radius; });
+}
+}  // namespace detail
+inline int scene_step_limit(const Scene& scene, double radius = 0.1) {
+    ClearanceGrid cg(scene.map, kStepLimitCell, kStepLimitGridSide, /*fill=*/false);
+    detail::fill_fits(cg, scene.map, radius);
+    const double steps_per_move = cg.cell / ExpertParams{}.cell;
+    double longest = 0;
+    for (size_t i = 0; i < scene.starts.size(); ++i) {
+        const std::vector<int> steps = wavefront(cg, cg.index(scene.goals[i]), 0.5);
+        const int k = cg.index(scene.starts[i]);
+        int moves = steps[k];  // a start whose cell centre is too near the map: from a neighbour
+        if (moves < 0)
+            detail::for_each_neighbour(cg.n, k, [&](int k2) { if (steps[k2] >= 0 && (moves < 0 || steps[k2] + 1 < moves)) moves = steps[k2] + 1; });
+        const Vec2 d = scene.goals[i] - scene.starts[i];
+        const double cells = moves >= 0 ? moves : std::max(std::fabs(d.x), std::fabs(d.y)) / cg.cell;
+        longest = std::max(longest, cells * steps_per_move);
+    }
+    return std::max(default_max_steps(scene.map.half_size), (int)std::ceil(2 * longest - 1e-9));
+}
 
 // =============================================================================================
 // Section 13. SVG rendering (SPEC 2)

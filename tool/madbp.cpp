@@ -39,9 +39,6 @@ std::string fixed(double v, int prec) {
     return b;
 }
 
-// The default episode step limit: 100 steps in the standard world (half-size 1.2), scaled with
-// the world's side, since crossing it takes proportionally longer.
-int default_max_steps(double half_size) { return (int)std::ceil(100 * half_size / 1.2 - 1e-9); }
 
 // --scenario NAME (an interaction scene generator), checked; not with --scene.
 std::string read_scenario(Args& a, const std::string& scene_path) {
@@ -78,7 +75,8 @@ int cmd_eval(Args& a) {
             "  --replan M        steps executed per plan (default 8)\n"
             "  --threads T       episodes in parallel (default 1; results do not depend on it)\n"
             "  --half-size H     half-size of random worlds (default 1.2; 2.4 = twice the side; at most 100)\n"
-            "  --max-steps N     episode step limit (default 100 x half-size / 1.2, of the scene's world with --scene)\n"
+            "  --max-steps N     episode step limit (default 100 x half-size / 1.2; with --scene at least twice\n"
+            "                    the longest robot's shortest route at cruise: madbp::scene_step_limit)\n"
             "  --json            one JSON object per cell instead of the table\n"
             "  --suite paper     every table and figure of the paper plus ours (--suite paper --help)\n"
             "  --list-settings   every planner setting (--set) with its defaults, range and meaning\n"
@@ -112,7 +110,7 @@ int cmd_eval(Args& a) {
         counts = {(long)scene.starts.size()};
         half_size = scene.map.half_size;
     }
-    if (max_steps == 0) max_steps = default_max_steps(half_size);
+    if (max_steps == 0) max_steps = scene_path.empty() ? madbp::default_max_steps(half_size) : madbp::scene_step_limit(scene);
     for (auto& m : maps) {  // validate names before any long run
         madbp::Rng probe(0);
         if (m != "scene") madbp::make_map(m, probe);
@@ -209,7 +207,7 @@ int cmd_render(Args& a) {
             "  --out FILE     output (default episode.svg)\n"
             "  --animate      an animated SVG that plays the episode\n"
             "  --no-filter, --replan M, --half-size H   as for eval\n"
-            "  --max-steps N  episode step limit (default 100 x half-size / 1.2, at most 10000: every frame is drawn)\n"
+            "  --max-steps N  episode step limit (default as for eval, at most 10000: every frame is drawn)\n"
             "  --json         print the result as JSON\n",
             method_list().c_str());
         return 0;
@@ -235,7 +233,8 @@ int cmd_render(Args& a) {
         setup.agents = (int)scene.starts.size();
         half_size = scene.map.half_size;
     }
-    if (max_steps == 0) max_steps = std::min(default_max_steps(half_size), kMaxRenderSteps);
+    if (max_steps == 0)
+        max_steps = std::min(scene_path.empty() ? madbp::default_max_steps(half_size) : madbp::scene_step_limit(scene), kMaxRenderSteps);
     return render_episode(method, a, setup, scene_path.empty() ? nullptr : &scene, seed, out, animate, json, half_size, max_steps, scenario);
 }
 
@@ -317,6 +316,41 @@ int cmd_bench(Args& a) {
     return 0;
 }
 
+int cmd_convert(Args& a) {
+    if (a.flag("--help")) {
+        std::printf(
+            "madbp convert - a MovingAI MAPF benchmark map and scenario as a scene file (docs/formats.md)\n"
+            "  --movingai MAP  the .map file (type octile; . G S passable, @ O T W blocked)\n"
+            "  --scen FILE     its .scen file (version 1); robot i takes scenario row offset + i\n"
+            "  --agents N      robots (1 to 1024)\n"
+            "  --cell C        world units per map cell (default 0.3: a one-cell aisle fits a robot of\n"
+            "                  diameter 0.2; at least 0.2); the world's half-size is max(W, H) x C / 2\n"
+            "  --offset K      first scenario row used, from 0 (default 0)\n"
+            "  --out FILE      the scene file to write\n"
+            "  --json          print the result as JSON\n");
+        return 0;
+    }
+    const std::string map_path = a.str("--movingai", ""), scen_path = a.str("--scen", ""), out = a.str("--out", "");
+    const int agents = (int)a.integer("--agents", 0, 1, madbp::kMaxSceneAgents);
+    const double cell = a.real("--cell", 0.3, 0.2, madbp::kMaxHalfSize);
+    const int offset = (int)a.integer("--offset", 0, 0, 1L << 30);
+    const bool json = a.flag("--json");
+    a.finish();
+    if (map_path.empty() || scen_path.empty() || out.empty() || agents == 0)
+        throw std::invalid_argument("needs --movingai MAP.map, --scen FILE.scen, --agents N and --out FILE.scene (see --help)");
+    const auto locks = claim_outputs(a, {{"--out", out}});
+    const madbp::Scene scene = madbp::load_movingai_scene(map_path, scen_path, agents, cell, offset);
+    madbp::write_file_atomic(out, madbp::scene_text(scene));
+    const int steps = madbp::scene_step_limit(scene);
+    if (json)
+        std::printf("%s\n", Json().add("out", out).add("half_size", scene.map.half_size).add("boxes", (long)scene.map.boxes.size())
+                                .add("agents", agents).add("max_steps", steps).line().c_str());
+    else
+        std::printf("wrote %s: world half-size %s, %zu boxes, %d robots; default step limit %d\n", out.c_str(),
+                    madbp::number_text(scene.map.half_size).c_str(), scene.map.boxes.size(), agents, steps);
+    return 0;
+}
+
 struct Subcommand {
     const char* name;
     const char* help;
@@ -328,6 +362,7 @@ const std::vector<Subcommand>& subcommands() {
         {"demo", "a planning episode on the barrier map, written as SVG", cmd_demo},
         {"eval", "success / collisions / steps of a method over seeded episodes", cmd_eval},
         {"render", "one episode drawn as (animated) SVG", cmd_render},
+        {"convert", "a MovingAI benchmark map and scenario as a scene file", cmd_convert},
         {"bench", "world stepping speed (--nn kernels, --plan planner)", cmd_bench},
         {"collect", "record demonstrations for training", cmd_collect},
         {"train", "train the MA-DBP model", cmd_train},
