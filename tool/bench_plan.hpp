@@ -100,9 +100,14 @@ inline int bench_plan(Args& a) {
         const double half_size = half_sizes.of(n);
         madbp::World world = madbp::make_random_world("empty", (int)n, seed, half_size);
         madbp::Plan plan;
-        for (int i = 0; i < 3; ++i) planner.plan_into(world, plan);  // warm-up: workspaces take their sizes
+        // Plans done on a terminal's progress line: at 1024 robots a plan takes seconds. The
+        // expert's run is the last unit.
+        madbp::ProgressFn progress = progress_line("bench --plan n=" + std::to_string(n) + " plans");
+        long done = 0;
+        auto tick = [&](const char* note) { if (progress) progress(++done, 3 + 3L * plans + 1, note); };
+        for (int i = 0; i < 3; ++i) planner.plan_into(world, plan), tick("warm-up");  // warm-up: workspaces take their sizes
         auto t0 = std::chrono::steady_clock::now();
-        for (int i = 0; i < plans; ++i) planner.plan_into(world, plan);
+        for (int i = 0; i < plans; ++i) planner.plan_into(world, plan), tick("first plans");
         const double secs = std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count();
         const int scenes = planner.last_scene_batch().B, per_scene = planner.last_scene_batch().n;
         // Warm plans: each of `plans` plans the world 8 steps on (robots held still) right after
@@ -114,6 +119,7 @@ inline int bench_plan(Args& a) {
             auto w0 = std::chrono::steady_clock::now();
             planner.plan_into(later, plan);
             warm_secs += std::chrono::duration<double>(std::chrono::steady_clock::now() - w0).count();
+            tick("warm plans");
         }
         // New worlds: what a plan costs when the team has just been given new goals (an episode's
         // first plan), the goal fields of the window cost's guidance included.
@@ -123,6 +129,7 @@ inline int bench_plan(Args& a) {
             auto f0 = std::chrono::steady_clock::now();
             planner.plan_into(fresh, plan);
             new_secs += std::chrono::duration<double>(std::chrono::steady_clock::now() - f0).count();
+            tick(i + 1 < plans ? "new worlds" : "the expert");
         }
         const int drawn = planner.last_plan_candidates();  // candidates per scene (small plans draw more)
         const double ms = 1000 * secs / plans, warm_ms = 1000 * warm_secs / plans, new_ms = 1000 * new_secs / plans, rate = plan_flops(config, per_scene, first_steps) * scenes * drawn / (secs / plans) / 1e9;
@@ -132,6 +139,8 @@ inline int bench_plan(Args& a) {
         const int expert_plans = std::max(3, plans / 5);
         for (int i = 0; i < expert_plans * madbp::ExpertParams{}.replan_every && !ew.done(); ++i) ew.step(expert.act(ew));
         const double expert_ms = expert.decision_ms();
+        tick("");
+        progress = nullptr;  // the line ends before the row
         if (scenes > 1 && robot_K == 0) {  // one robot's own scene (plan_robot), from the first team planned in neighbourhoods
             std::vector<madbp::DiffusionPlanner::Neighbour> others;
             for (int j = 1; j < world.size(); ++j) others.push_back({world.agents()[j].pos, world.agents()[j].goal, world.agents()[j].id});
