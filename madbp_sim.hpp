@@ -21,6 +21,9 @@
 //   0.3  PassageControl and its parameters move to madbp.hpp (the planner's traffic conventions).
 //        ClearanceGrid moves to Section 2; interaction scenes check reachability on its layout
 //        (detail::all_reachable; ReachGrid, a second cell grid, is gone).
+//        default_half_size(n): random worlds at constant density (1.2 up to 8 robots, 13.6 at
+//        1024); a team its world cannot hold fails naming half_size; evaluate's progress notes
+//        a running episode's steps.
 //   0.2  ProgressFn instead of printing; Policy::decision_ms.
 //        Map is now WorldMap (no clash with Eigen::Map), with operator==; local_crop moved here.
 //        PlanFollower's filter weighs robots as the expert does (FollowerConfig::priority_weight).

@@ -30,6 +30,8 @@ TEST_CASE("tools: default_half_size keeps the density of 64 robots in half-size 
     CHECK(madbp_cli::HalfSize{}.of(4) == 1.2);
     CHECK(madbp_cli::HalfSize{}.of(256) == doctest::Approx(6.8));
     CHECK(madbp_cli::HalfSize{2.0}.of(256) == 2.0);
+    CHECK(madbp_cli::HalfSize{}.of(12, "circle") == 1.2);  // interaction scenes: drawn for the standard world
+    CHECK(madbp_cli::HalfSize{2.4}.of(16, "circle") == 2.4);
     Args a(std::vector<std::string>{"--half-size", "2.5"});
     CHECK(madbp_cli::read_half_size(a).of(1024) == 2.5);
     Args none(std::vector<std::string>{});

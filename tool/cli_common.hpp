@@ -287,10 +287,13 @@ struct Json {
 constexpr long kMaxTeam = madbp::kMaxSceneAgents;
 
 // --half-size of random worlds. Not given, each team size n gets the constant-density
-// madbp::default_half_size(n) (1.2 up to 8 robots, 3.4 at 64, 13.6 at 1024).
+// madbp::default_half_size(n) (1.2 up to 8 robots, 3.4 at 64, 13.6 at 1024); an interaction
+// scene (--scenario) the standard 1.2, since its layouts are drawn for that world, not spawned.
 struct HalfSize {
     double given = 0;  // 0: not given
-    double of(long n) const { return given > 0 ? given : madbp::default_half_size((int)n); }
+    double of(long n, const std::string& scenario = "") const {
+        return given > 0 ? given : scenario.empty() ? madbp::default_half_size((int)n) : 1.2;
+    }
 };
 inline HalfSize read_half_size(Args& a) { return {a.real("--half-size", 0, 0.6, madbp::kMaxHalfSize)}; }
 

@@ -78,7 +78,7 @@ int cmd_eval(Args& a) {
             "  --replan M        steps executed per plan (default 8)\n"
             "  --threads T       episodes in parallel (default 1; results do not depend on it)\n"
             "  --half-size H     half-size of random worlds (default: constant density, 1.2 up to 8 robots,\n"
-            "                    about 0.425 sqrt(n) beyond: 3.4 at 64, 13.6 at 1024; 2.4 = twice the side; at most 100)\n"
+            "                    about 0.425 sqrt(n) beyond: 3.4 at 64, 13.6 at 1024; with --scenario 1.2; at most 100)\n"
             "  --max-steps N     episode step limit (default 100 x half-size / 1.2, of the scene's world with --scene)\n"
             "  --json            one JSON object per cell instead of the table\n"
             "  --suite paper     every table and figure of the paper plus ours (--suite paper --help)\n"
@@ -113,7 +113,7 @@ int cmd_eval(Args& a) {
         counts = {(long)scene.starts.size()};
     }
     // Each cell's world: the scene's, --half-size, or the constant density of its team size.
-    auto cell_half_size = [&](long n) { return scene_path.empty() ? half_size.of(n) : scene.map.half_size; };
+    auto cell_half_size = [&](long n) { return scene_path.empty() ? half_size.of(n, scenario) : scene.map.half_size; };
     for (auto& m : maps) {  // validate names, and that each team fits its world, before any long run
         madbp::Rng probe(0);
         if (m == "scene") continue;
@@ -234,7 +234,7 @@ int cmd_render(Args& a) {
     std::string scene_path = a.str("--scene", ""), out = a.str("--out", "episode.svg");
     std::string scenario = read_scenario(a, scene_path);
     bool animate = a.flag("--animate"), json = a.flag("--json");
-    double half_size = read_half_size(a).of(setup.agents);
+    double half_size = read_half_size(a).of(setup.agents, scenario);
     int max_steps = (int)a.integer("--max-steps", 0, 1, kMaxRenderSteps);  // 0: default_max_steps
     madbp::Scene scene;
     refuse_scene_overrides(a, scene_path);
