@@ -23,6 +23,8 @@
 //        movingai_scene / load_movingai_scene: MovingAI MAPF benchmark maps and scenarios as scenes.
 //        Scene::comments (scene_text writes them); scene_text(Scene).
 //        default_max_steps moves here from the tool; scene_step_limit follows the longest route.
+//        default_half_size(n): random worlds at constant density (1.2 up to 8 robots, 13.6 at 1024).
+//        A team its world cannot hold fails naming half_size; evaluate's progress notes the steps.
 //   0.2  ProgressFn instead of printing; Policy::decision_ms.
 //        Map is now WorldMap (no clash with Eigen::Map), with operator==; local_crop moved here.
 //        PlanFollower's filter weighs robots as the expert does (FollowerConfig::priority_weight).
@@ -154,7 +156,7 @@ inline std::string number_text(double v) {
 //   1 geometry: Vec2, Disc, Box, WorldMap, for_each_surface, static_clearance
 //   2 maps: make_map("empty" | "obstacles" | "barrier"), ClearanceGrid (the map's cells) [2]
 //   3 the world: WorldConfig, Agent, Metrics, World (add/remove agents, step)    [2]
-//   4 spawning: spawn_agents, make_random_world, WorldBatch                      [2]
+//   4 spawning: default_half_size, spawn_agents, make_random_world, WorldBatch   [2]
 //   4b interaction scenes: interaction_scenarios, make_interaction_world      (issue 12)
 //   5 occupancy grid: Grid, occupancy_grid, local_crop                           [2, 5]
 //   6 scene files: Scene, parse_scene, load_scene, scene_text, make_world        [2]
@@ -631,10 +633,22 @@ private:
 // Section 4. Spawning (SPEC 2)
 // =============================================================================================
 
+// The half-size of a random world for `n` robots at constant density: that of 64 robots in
+// half-size 3.4 (about 0.425 sqrt(n)), rounded to 0.1 and never below the standard 1.2. Teams
+// of <= 8 get exactly 1.2 (0.425 sqrt(8) = 1.202 rounds to it), so the standard world and every
+// result measured in it stay as they were; 16 -> 1.7, 32 -> 2.4, 64 -> 3.4, 256 -> 6.8,
+// 1024 -> 13.6. The tool's default for --half-size (eval, render, bench --plan).
+inline double default_half_size(int n) {
+    if (n <= 8) return 1.2;
+    return std::max(1.2, std::round(4.25 * std::sqrt((double)n)) / 10);
+}
+
 // Draws `n` starts and then `n` goals by rejection sampling: uniform in [-1, 1]^2 scaled by
 // half_size/1.2; every centre >= `min_separation` (0.25) from every earlier centre (starts and
 // goals alike) and >= radius + 0.05 from any obstacle or wall surface. Each point gets at most
-// `max_tries` draws; a layout that cannot be placed throws std::runtime_error (never hangs).
+// `max_tries` draws; a layout that cannot be placed throws std::runtime_error naming half_size
+// (the world is too small for the team) and default_half_size(n) (never hangs: with the checks
+// O(points placed) per draw, 1024 robots at default_half_size(1024) take a few ms).
 struct SpawnConfig {
     double min_separation = 0.25;  // between centres, world units
     double clearance = 0.05;       // extra gap to obstacle and wall surfaces beyond the radius
@@ -656,8 +670,11 @@ inline void spawn_agents(World& world, int n, Rng& rng, const SpawnConfig& sc = 
             placed.push_back(p);
             return p;
         }
-        throw std::runtime_error(std::string("spawn: could not place ") + what + " " + std::to_string(k) + " of " +
-                                 std::to_string(n) + " after " + std::to_string(sc.max_tries) + " tries (world too crowded)");
+        throw std::runtime_error("half_size: " + number_text(map.half_size) + " is too small for " + std::to_string(n) +
+                                 " robots on this map: could not place " + what + " " + std::to_string(k) + " of " +
+                                 std::to_string(n) + " after " + std::to_string(sc.max_tries) +
+                                 " tries (constant density: default_half_size(" + std::to_string(n) + ") = " +
+                                 number_text(default_half_size(n)) + ")");
     };
     std::vector<Vec2> starts, goals;
     for (int i = 0; i < n; ++i) starts.push_back(draw("start", i));
@@ -2158,7 +2175,7 @@ struct EvalConfig {
     const Scene* scene = nullptr;  // a fixed problem; then seeds vary only the policy's randomness
     std::string scenario;        // an interaction scenario (make_interaction_world) on `map` instead of random spawns
     int threads = 1;             // episodes run in parallel
-    ProgressFn progress;         // called after each episode (optional)
+    ProgressFn progress;         // called after each episode, and before each step with the note "step s/limit" (optional)
     WorldConfig world;
 };
 struct EvalResult {
@@ -2193,7 +2210,16 @@ inline EvalResult evaluate(const EvalConfig& c, const PolicyFactory& factory) {
         try {
             World w = make_episode_world(c, c.seed + e);
             std::unique_ptr<Policy> policy = factory(w, c.seed + e);
-            r.runs[e] = run_episode(w, *policy);
+            // Steps as notes: one episode of 1024 robots can take minutes, and a progress line
+            // that only moves per episode would look stuck.
+            std::function<void(World&)> on_step;
+            if (c.progress)
+                on_step = [&](World& world) {
+                    const std::string note = "step " + std::to_string(world.metrics().steps) + "/" + std::to_string(world.config().max_steps);
+#pragma omp critical
+                    c.progress(done, c.episodes, note);
+                };
+            r.runs[e] = run_episode(w, *policy, false, on_step);
         } catch (const std::exception& ex) {
 #pragma omp critical
             if (error.empty()) error = "episode with seed " + std::to_string(c.seed + e) + ": " + ex.what();

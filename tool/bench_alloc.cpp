@@ -2,8 +2,9 @@
 // A program of its own because it replaces malloc and operator new (tests/alloc_counter.hpp);
 // the shipped tool keeps the system allocator.
 //   build/bench_alloc [--model FILE] [--agents 1,2,4,8,16,32,64] [--plans N] [--set GROUP.NAME=VALUE ...] [--json]
-// Worlds as bench --plan's: half-size 1.2 up to 8 robots, 2.4 up to 32 (neighbourhoods), 3.4 beyond;
-// plans alternate between a world and the same world 8 steps on, cold and warm-started.
+// --model's default is the shipped model (default_model_path), as for eval and bench --plan.
+// Worlds as bench --plan's: empty, at constant density (madbp::default_half_size); plans
+// alternate between a world and the same world 8 steps on, cold and warm-started.
 #include <cstdio>
 
 #include "cli_common.hpp"
@@ -17,7 +18,8 @@ int main(int argc, char** argv) {
     try {
         Args a(argc, argv, 1);
         std::string model_path = a.str("--model", "");
-        std::vector<long> teams = a.integers("--agents", "1,2,4,8,16,32,64", 1, 1024);
+        if (model_path.empty()) model_path = madbp::default_model_path();  // throws, naming the places tried, only when needed
+        std::vector<long> teams = a.integers("--agents", "1,2,4,8,16,32,64", 1, kMaxTeam);
         int plans = (int)a.integer("--plans", 10, 1, 1000000);
         madbp::PlannerConfig settings;  // tuned; --set changes any setting
         apply_planner_settings(a, settings);
@@ -25,11 +27,10 @@ int main(int argc, char** argv) {
         a.finish();
         if (!MADBP_TEST_COUNT_ALLOCS) throw std::runtime_error("built with a sanitizer that owns malloc: nothing can be counted");
         madbp::set_num_threads(1);
-        if (!json) std::printf("alloc bench: %s\n%4s %12s\n", model_path.empty() ? "default config" : model_path.c_str(), "n", "allocs/plan");
+        if (!json) std::printf("alloc bench: %s\n%4s %12s\n", model_path.c_str(), "n", "allocs/plan");
         for (long n : teams) {
-            madbp::MadbpModel model = model_path.empty() ? madbp::MadbpModel(madbp::ModelConfig{}) : madbp::load_model(model_path);
-            madbp::DiffusionPlanner planner(std::move(model), 0, settings);
-            madbp::World world = madbp::make_random_world("empty", (int)n, 0, n > 32 ? 3.4 : n > 8 ? 2.4 : 1.2);
+            madbp::DiffusionPlanner planner(madbp::load_model(model_path), 0, settings);
+            madbp::World world = madbp::make_random_world("empty", (int)n, 0, madbp::default_half_size((int)n));
             const madbp::World later = held_still(world, 8);  // its plans are warm-started
             madbp::Plan plan;
             auto cold_then_warm = [&] { planner.plan_into(world, plan); planner.plan_into(later, plan); };

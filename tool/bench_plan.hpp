@@ -60,11 +60,13 @@ inline double eigen_gemm_rate(int m, int kdim, int n) {
 
 inline int bench_plan(Args& a) {
     const PlannerChoice choice = read_planner_choice(a);  // the shipped model and the tuned planner unless told
-    std::vector<long> teams = a.integers("--agents", "1,2,4,8,16,32,64", 1, 1024);
+    std::vector<long> teams = a.integers("--agents", "1,2,4,8,16,32,64", 1, kMaxTeam);
+    const HalfSize half_sizes = read_half_size(a);
     int plans = (int)a.integer("--plans", 50, 1, 1000000);
     uint64_t seed = (uint64_t)a.integer("--seed", 0, 0);
     bool json = a.flag("--json");
     a.finish();
+    for (long n : teams) check_random_world("empty", n, seed, half_sizes.of(n));  // before the long run
     if (choice.decentralised) throw std::invalid_argument("--decentralised: bench --plan times a team's plans (plan_robot: --agents 1)");
     madbp::set_num_threads(1);  // SPEC 9: one core
     const std::string& model_path = choice.model_path;
@@ -77,14 +79,17 @@ inline int bench_plan(Args& a) {
     if (!json)
         std::printf("plan bench: %s, S = %d, guidance %g, keep-right %g, candidates %d (plans of <= %d robot windows %d), warm start %d, line start %d, one thread;\n"
                     "Eigen GEMM %dx%d * %dx%d: %.1f GFLOP/s\n"
-                    "random empty worlds: half-size 1.2 up to 8 robots, 2.4 up to 32, 3.4 beyond; scenes x robots\n"
+                    "random empty worlds: %s; scenes x robots\n"
                     "per scene (x candidates) as the planner chose (automatic neighbourhoods); ms/plan: a first plan (line start: the\n"
                     "last W steps from straight lines; else all S); warm_ms: a plan 8 steps after the last, warm-started;\n"
                     "new_ms: a first plan of a new world on the same map (new goals: their goal fields are made);\n"
                     "expert: the guided expert's ms per plan; GFLOP/s: of a first plan\n"
                     "%4s %6s %10s %10s %10s %10s %10s %8s\n",
                     model_path.c_str(), S, sc.guidance, sc.keep_right, sc.candidates,
-                    madbp::kSmallPlanWindows, choice.settings.sampler.small_plan_candidates, sc.warm_start, choice.settings.sampler.line_start ? 1 : 0, config.channels[0], config.dim * config.kernel, config.dim * config.kernel, config.horizon * 8, gemm, "n",
+                    madbp::kSmallPlanWindows, choice.settings.sampler.small_plan_candidates, sc.warm_start, choice.settings.sampler.line_start ? 1 : 0, config.channels[0], config.dim * config.kernel, config.dim * config.kernel, config.horizon * 8, gemm,
+                    half_sizes.given > 0 ? ("half-size " + madbp::number_text(half_sizes.given)).c_str()
+                                         : "half-size at constant density (1.2 up to 8 robots, 3.4 at 64, 13.6 at 1024)",
+                    "n",
                     "scenes", "ms/plan", "warm_ms", "new_ms", "expert_ms", "GFLOP/s", "of GEMM");
     double robot_ms = 0, robot_warm_ms = 0;
     int robot_K = 0;
@@ -92,13 +97,17 @@ inline int bench_plan(Args& a) {
         madbp::DiffusionPlanner planner(loaded.clone(), seed, choice.settings);
         // DDIM steps of a first plan: with line start and warm start on, the last W, else all S.
         const int first_steps = choice.settings.sampler.line_start && sc.warm_starts() ? sc.warm_start : S;
-        // Larger teams need a larger world to spawn in (starts and goals 0.25 apart).
-        const double half_size = n > 32 ? 3.4 : n > 8 ? 2.4 : 1.2;
+        const double half_size = half_sizes.of(n);
         madbp::World world = madbp::make_random_world("empty", (int)n, seed, half_size);
         madbp::Plan plan;
-        for (int i = 0; i < 3; ++i) planner.plan_into(world, plan);  // warm-up: workspaces take their sizes
+        // Plans done on a terminal's progress line: at 1024 robots a plan takes seconds. The
+        // expert's run is the last unit.
+        madbp::ProgressFn progress = progress_line("bench --plan n=" + std::to_string(n) + " plans");
+        long done = 0;
+        auto tick = [&](const char* note) { if (progress) progress(++done, 3 + 3L * plans + 1, note); };
+        for (int i = 0; i < 3; ++i) planner.plan_into(world, plan), tick("warm-up");  // warm-up: workspaces take their sizes
         auto t0 = std::chrono::steady_clock::now();
-        for (int i = 0; i < plans; ++i) planner.plan_into(world, plan);
+        for (int i = 0; i < plans; ++i) planner.plan_into(world, plan), tick("first plans");
         const double secs = std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count();
         const int scenes = planner.last_scene_batch().B, per_scene = planner.last_scene_batch().n;
         // Warm plans: each of `plans` plans the world 8 steps on (robots held still) right after
@@ -110,6 +119,7 @@ inline int bench_plan(Args& a) {
             auto w0 = std::chrono::steady_clock::now();
             planner.plan_into(later, plan);
             warm_secs += std::chrono::duration<double>(std::chrono::steady_clock::now() - w0).count();
+            tick("warm plans");
         }
         // New worlds: what a plan costs when the team has just been given new goals (an episode's
         // first plan), the goal fields of the window cost's guidance included.
@@ -119,6 +129,7 @@ inline int bench_plan(Args& a) {
             auto f0 = std::chrono::steady_clock::now();
             planner.plan_into(fresh, plan);
             new_secs += std::chrono::duration<double>(std::chrono::steady_clock::now() - f0).count();
+            tick(i + 1 < plans ? "new worlds" : "the expert");
         }
         const int drawn = planner.last_plan_candidates();  // candidates per scene (small plans draw more)
         const double ms = 1000 * secs / plans, warm_ms = 1000 * warm_secs / plans, new_ms = 1000 * new_secs / plans, rate = plan_flops(config, per_scene, first_steps) * scenes * drawn / (secs / plans) / 1e9;
@@ -128,6 +139,8 @@ inline int bench_plan(Args& a) {
         const int expert_plans = std::max(3, plans / 5);
         for (int i = 0; i < expert_plans * madbp::ExpertParams{}.replan_every && !ew.done(); ++i) ew.step(expert.act(ew));
         const double expert_ms = expert.decision_ms();
+        tick("");
+        progress = nullptr;  // the line ends before the row
         if (scenes > 1 && robot_K == 0) {  // one robot's own scene (plan_robot), from the first team planned in neighbourhoods
             std::vector<madbp::DiffusionPlanner::Neighbour> others;
             for (int j = 1; j < world.size(); ++j) others.push_back({world.agents()[j].pos, world.agents()[j].goal, world.agents()[j].id});
@@ -150,7 +163,7 @@ inline int bench_plan(Args& a) {
             robot_K = per_scene;
         }
         if (json)
-            std::printf("%s\n", Json().add("bench", "plan").add("agents", n).add("scenes", scenes).add("per_scene", per_scene).add("sample_steps", S)
+            std::printf("%s\n", Json().add("bench", "plan").add("agents", n).add("half_size", half_size).add("scenes", scenes).add("per_scene", per_scene).add("sample_steps", S)
                                     .add("guidance", sc.guidance).add("keep_right", sc.keep_right).add("candidates", drawn).add("warm_start", sc.warm_start).add("line_start", choice.settings.sampler.line_start ? 1 : 0).add("ms_per_plan", ms).add("warm_ms_per_plan", warm_ms).add("new_world_ms_per_plan", new_ms).add("expert_ms_per_plan", expert_ms)
                                     .add("gflops", rate).add("gemm_gflops", gemm).add("share_of_gemm", rate / gemm).line().c_str());
         else {

@@ -283,6 +283,32 @@ struct Json {
     std::string line() const { return "{" + body + "}"; }
 };
 
+// --agents of eval, render and bench: up to the team a scene file may hold.
+constexpr long kMaxTeam = madbp::kMaxSceneAgents;
+
+// --half-size of random worlds. Not given, each team size n gets the constant-density
+// madbp::default_half_size(n) (1.2 up to 8 robots, 3.4 at 64, 13.6 at 1024); an interaction
+// scene (--scenario) the standard 1.2, since its layouts are drawn for that world, not spawned.
+struct HalfSize {
+    double given = 0;  // 0: not given
+    double of(long n, const std::string& scenario = "") const {
+        return given > 0 ? given : scenario.empty() ? madbp::default_half_size((int)n) : 1.2;
+    }
+};
+inline HalfSize read_half_size(Args& a) { return {a.real("--half-size", 0, 0.6, madbp::kMaxHalfSize)}; }
+
+// Makes the random world of `seed` before any long run, so that a team too large for its world
+// fails at once, naming the flag (the library names its field, half_size).
+inline void check_random_world(const std::string& map, long n, uint64_t seed, double half_size) {
+    try {
+        madbp::make_random_world(map, (int)n, seed, half_size);
+    } catch (const std::runtime_error& e) {
+        const std::string what = e.what(), field = "half_size: ";
+        if (what.rfind(field, 0) != 0) throw;
+        throw std::invalid_argument("--half-size: " + what.substr(field.size()));
+    }
+}
+
 // A madbp::ProgressFn that draws "label  120/1000  37.2/s  ETA 24s  note" in place on stderr
 // when it is a terminal, and nothing otherwise (CI logs).
 inline madbp::ProgressFn progress_line(const std::string& label) {
@@ -299,12 +325,12 @@ inline madbp::ProgressFn progress_line(const std::string& label) {
     return [line](long done, long total, const std::string& note) {
         Line& l = *line;
         const auto now = std::chrono::steady_clock::now();
-        if (l.first < 0) l.first = done - 1, l.start = now;
+        if (l.first < 0) l.first = std::max(0L, done - 1), l.start = now;  // done 0: a note before the first unit
         if (done < total && now - l.last < std::chrono::milliseconds(200)) return;
         l.last = now;
         const double secs = std::chrono::duration<double>(now - l.start).count(), rate = secs > 0 ? (done - l.first) / secs : 0;
-        std::fprintf(stderr, "\r%s  %ld/%ld  %.1f/s  ETA %.0fs  %s\033[K", l.label.c_str(), done, total, rate,
-                     rate > 0 ? (total - done) / rate : 0.0, note.c_str());
+        const std::string eta = rate > 0 ? "ETA " + std::to_string(std::lround((total - done) / rate)) + "s" : "ETA -";
+        std::fprintf(stderr, "\r%s  %ld/%ld  %.1f/s  %s  %s\033[K", l.label.c_str(), done, total, rate, eta.c_str(), note.c_str());
         l.open = done < total;
         if (!l.open) std::fprintf(stderr, "\n");
         std::fflush(stderr);

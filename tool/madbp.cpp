@@ -64,7 +64,7 @@ int cmd_eval(Args& a) {
             "madbp eval - success, collisions and steps of a method over seeded episodes (SPEC 10)\n"
             "  --method M        method (default expert):\n%s"
             "  --map NAMES       empty, obstacles, barrier; comma list (default empty)\n"
-            "  --agents LIST     team sizes, e.g. 2,4,6 (default 2,4,6)\n"
+            "  --agents LIST     team sizes, e.g. 2,4,6 (default 2,4,6; each in [1, 1024])\n"
             "  --episodes N      episodes per cell (default 100)\n"
             "  --seed S          episode i uses seed S+i (default 0)\n"
             "  --scene FILE      a fixed problem (SPEC 2) instead of random maps; seeds vary only\n"
@@ -74,7 +74,8 @@ int cmd_eval(Args& a) {
             "  --no-filter       turn the safety filter off (line and planners)\n"
             "  --replan M        steps executed per plan (default 8)\n"
             "  --threads T       episodes in parallel (default 1; results do not depend on it)\n"
-            "  --half-size H     half-size of random worlds (default 1.2; 2.4 = twice the side; at most 100)\n"
+            "  --half-size H     half-size of random worlds (default: constant density, 1.2 up to 8 robots,\n"
+            "                    about 0.425 sqrt(n) beyond: 3.4 at 64, 13.6 at 1024; with --scenario 1.2; at most 100)\n"
             "  --max-steps N     episode step limit (default 100 x half-size / 1.2; with --scene at least twice\n"
             "                    the longest robot's shortest route at cruise: madbp::scene_step_limit)\n"
             "  --json            one JSON object per cell instead of the table\n"
@@ -88,7 +89,7 @@ int cmd_eval(Args& a) {
     }
     std::string method_name = a.str("--method", "expert");
     std::vector<std::string> maps = split(a.str("--map", "empty"), "--map");
-    std::vector<long> counts = a.integers("--agents", "2,4,6", 1, 64);
+    std::vector<long> counts = a.integers("--agents", "2,4,6", 1, kMaxTeam);
     int episodes = (int)a.integer("--episodes", 100, 1, 1000000);
     uint64_t seed = (uint64_t)a.integer("--seed", 0, 0);
     std::string scene_path = a.str("--scene", "");
@@ -98,8 +99,8 @@ int cmd_eval(Args& a) {
     setup.filter = !a.flag("--no-filter");
     setup.replan = (int)a.integer("--replan", 8, 1, 1000);
     int threads = (int)a.integer("--threads", 1, 1, 256);
-    double half_size = a.real("--half-size", 1.2, 0.6, madbp::kMaxHalfSize);
-    int max_steps = (int)a.integer("--max-steps", 0, 1, 1000000);  // 0: default_max_steps
+    const HalfSize half_size = read_half_size(a);
+    const int max_steps = (int)a.integer("--max-steps", 0, 1, 1000000);  // 0: default_max_steps
     auto all = methods();
     const Method& method = find_method(all, method_name);
     madbp::Scene scene;
@@ -108,12 +109,15 @@ int cmd_eval(Args& a) {
         scene = madbp::load_scene(scene_path);
         maps = {"scene"};
         counts = {(long)scene.starts.size()};
-        half_size = scene.map.half_size;
     }
-    if (max_steps == 0) max_steps = scene_path.empty() ? madbp::default_max_steps(half_size) : madbp::scene_step_limit(scene);
-    for (auto& m : maps) {  // validate names before any long run
+    // Each cell's world: the scene's, --half-size, or the constant density of its team size.
+    auto cell_half_size = [&](long n) { return scene_path.empty() ? half_size.of(n, scenario) : scene.map.half_size; };
+    for (auto& m : maps) {  // validate names, and that each team fits its world, before any long run
         madbp::Rng probe(0);
-        if (m != "scene") madbp::make_map(m, probe);
+        if (m == "scene") continue;
+        madbp::make_map(m, probe);
+        if (scenario.empty())
+            for (long n : counts) check_random_world(m, n, seed, cell_half_size(n));
     }
     std::vector<MethodSpec> specs;
     for (auto& m : maps)
@@ -137,8 +141,8 @@ int cmd_eval(Args& a) {
             c.seed = seed;
             c.threads = threads;
             c.progress = progress_line("eval " + m + " n=" + std::to_string(n));
-            c.half_size = half_size;
-            c.world.max_steps = max_steps;
+            c.half_size = cell_half_size(n);
+            c.world.max_steps = max_steps > 0 ? max_steps : scene_path.empty() ? madbp::default_max_steps(c.half_size) : madbp::scene_step_limit(scene);
             c.scene = scene_path.empty() ? nullptr : &scene;
             c.scenario = scenario;
             madbp::EvalResult r = madbp::evaluate(c, spec.factory);
@@ -177,7 +181,12 @@ int render_episode(const Method& method, Args& a, MethodSetup setup, const madbp
                          : !scenario.empty() ? madbp::make_interaction_world(scenario, setup.map, setup.agents, seed, half_size, wc)
                                              : madbp::make_random_world(setup.map, setup.agents, seed, half_size, wc);
     auto policy = spec.factory(world, seed);
-    madbp::EpisodeResult r = madbp::run_episode(world, *policy, true);
+    // One episode of 1024 robots can take minutes: its steps on a progress line.
+    madbp::ProgressFn progress = progress_line("render " + setup.map + " n=" + std::to_string(setup.agents) + " steps");
+    std::function<void(madbp::World&)> on_step;
+    if (progress) on_step = [&](madbp::World& w) { progress(w.metrics().steps, w.config().max_steps, ""); };
+    madbp::EpisodeResult r = madbp::run_episode(world, *policy, true, on_step);
+    progress = nullptr;  // ends the line before the result is printed
     madbp::SvgOptions opt;
     opt.animate = animate;
     opt.title = method.name + "  " + setup.map + (scenario.empty() ? "" : "/" + scenario) + "  n=" + std::to_string(setup.agents) + "  seed " + std::to_string(seed) +
@@ -200,13 +209,13 @@ int cmd_render(Args& a) {
             "madbp render - run one episode and draw it as SVG (map, goals, trajectories, collisions)\n"
             "  --method M     method (default expert):\n%s"
             "  --map NAME     empty, obstacles, barrier (default barrier)\n"
-            "  --agents N     team size (default 4)\n"
+            "  --agents N     team size (default 4; at most 1024)\n"
             "  --seed S       episode seed (default 0)\n"
             "  --scene FILE   a fixed problem instead of a random one (not with --map, --agents, --half-size)\n"
             "  --scenario NAME  an interaction scene on --map instead of random spawns (n <= 4; as for eval)\n"
             "  --out FILE     output (default episode.svg)\n"
             "  --animate      an animated SVG that plays the episode\n"
-            "  --no-filter, --replan M, --half-size H   as for eval\n"
+            "  --no-filter, --replan M, --half-size H   as for eval (default half-size: constant density)\n"
             "  --max-steps N  episode step limit (default as for eval, at most 10000: every frame is drawn)\n"
             "  --json         print the result as JSON\n",
             method_list().c_str());
@@ -216,14 +225,14 @@ int cmd_render(Args& a) {
     const Method& method = find_method(all, a.str("--method", "expert"));
     MethodSetup setup;
     setup.map = a.str("--map", "barrier");
-    setup.agents = (int)a.integer("--agents", 4, 1, 64);
+    setup.agents = (int)a.integer("--agents", 4, 1, kMaxTeam);
     setup.filter = !a.flag("--no-filter");
     setup.replan = (int)a.integer("--replan", 8, 1, 1000);
     uint64_t seed = (uint64_t)a.integer("--seed", 0, 0);
     std::string scene_path = a.str("--scene", ""), out = a.str("--out", "episode.svg");
     std::string scenario = read_scenario(a, scene_path);
     bool animate = a.flag("--animate"), json = a.flag("--json");
-    double half_size = a.real("--half-size", 1.2, 0.6, madbp::kMaxHalfSize);
+    double half_size = read_half_size(a).of(setup.agents, scenario);
     int max_steps = (int)a.integer("--max-steps", 0, 1, kMaxRenderSteps);  // 0: default_max_steps
     madbp::Scene scene;
     refuse_scene_overrides(a, scene_path);
@@ -232,6 +241,8 @@ int cmd_render(Args& a) {
         setup.map = "scene";
         setup.agents = (int)scene.starts.size();
         half_size = scene.map.half_size;
+    } else if (scenario.empty()) {
+        check_random_world(setup.map, setup.agents, seed, half_size);
     }
     if (max_steps == 0)
         max_steps = std::min(scene_path.empty() ? madbp::default_max_steps(half_size) : madbp::scene_step_limit(scene), kMaxRenderSteps);
@@ -269,14 +280,16 @@ int cmd_bench(Args& a) {
         std::printf(
             "madbp bench - world steps per second for a batch of worlds stepping together\n"
             "  --worlds N     worlds in the batch (default 1000)\n"
-            "  --agents N     agents per world (default 4)\n"
+            "  --agents N     agents per world (default 4; at most 1024)\n"
+            "  --half-size H  of the obstacles worlds (default: constant density, 1.2 up to 8 agents)\n"
             "  --steps N      steps timed (default 200)\n"
             "  --threads LIST thread counts, e.g. 1,2 (default 1,2)\n"
             "  --seed S       seed of the worlds and actions (default 0)\n"
             "  --nn           benchmark the neural-network kernels instead\n"
             "  --plan         benchmark the diffusion planner instead: ms per plan and GFLOP/s against\n"
             "                 Eigen's GEMM (allocations: build/bench_alloc); with --agents LIST (default\n"
-            "                 1,2,4,8,16,32,64), --plans N, and the planner flags of eval --method madbp\n"
+            "                 1,2,4,8,16,32,64; each in [1, 1024]), --plans N, --half-size H (default:\n"
+            "                 constant density, as for eval), and the planner flags of eval --method madbp\n"
             "                 (--model, --preset, --neighbours, --set; default the shipped model, tuned);\n"
             "                 ms/plan is a first plan, warm_ms a plan 8 steps later\n"
             "  --json         one JSON object per thread count\n");
@@ -285,17 +298,19 @@ int cmd_bench(Args& a) {
     if (a.flag("--plan")) return bench_plan(a);
     if (a.flag("--nn")) return bench_nn(a);
     int worlds = (int)a.integer("--worlds", 1000, 1, 1000000);
-    int agents = (int)a.integer("--agents", 4, 1, 64);
+    int agents = (int)a.integer("--agents", 4, 1, kMaxTeam);
+    const double half_size = read_half_size(a).of(agents);
     int steps = (int)a.integer("--steps", 200, 1, 1000000);
     std::vector<long> threads = a.integers("--threads", "1,2", 1, 256);
     uint64_t seed = (uint64_t)a.integer("--seed", 0, 0);
     bool json = a.flag("--json");
     a.finish();
+    check_random_world("obstacles", agents, seed, half_size);
     for (long th : threads) {
         madbp::WorldBatch batch;
         madbp::WorldConfig cfg;
         cfg.max_steps = 1 << 30;
-        for (int w = 0; w < worlds; ++w) batch.worlds.push_back(madbp::make_random_world("obstacles", agents, seed + w, 1.2, cfg));
+        for (int w = 0; w < worlds; ++w) batch.worlds.push_back(madbp::make_random_world("obstacles", agents, seed + w, half_size, cfg));
         madbp::Rng rng(seed);
         std::vector<std::vector<madbp::Vec2>> actions(worlds, std::vector<madbp::Vec2>(agents));
         for (auto& wa : actions)
