@@ -3332,7 +3332,8 @@ void sample_conflict_aware(Denoiser& model, const NoiseSchedule& schedule, const
 
 // Draws windows for a batch of scenes with DDIM: x (2, H*A) starts as N(0, I); after every
 // step the pinned waypoints are re-imposed and inactive agents are zeroed (paper Alg. 2).
-// `model.encode_context(batch)` is called here. Output: normalised displacements.
+// `model.encode_context(batch)` is called here. Output: normalised displacements. `out` is the
+// denoiser's scratch (after a plain draw it holds the last step's clipped x0_hat).
 // Denoiser: MadbpModel, or anything with `config`, encode_context(batch), denoise(x, k, out).
 // With sc.conflict_aware() the draw is guided and/or best-of-k (detail::sample_conflict_aware)
 // and needs `cw` with the map's distance field (ConflictWorkspace::set_map); all scenes of the
