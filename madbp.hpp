@@ -3206,7 +3206,7 @@ inline void impose_pins(const SceneBatch& batch, const ModelConfig& c, const Sam
 }
 
 // SamplerConfig::end_bend on drawn windows x (2, H*A). The model's windows near a goal often
-// stop 0.05-0.15 short of it, or stay put with others about, and only the inpainted last
+// end 0.05-0.15 short of it, or stay put with others about, and only the inpainted last
 // waypoint is at the goal; the tracker follows the first replan steps, so the robot never gets there.
 inline void bend_to_pinned_ends(const SceneBatch& batch, const ModelConfig& c, const SamplerConfig& sc, Mat& x) {
     const int H = c.horizon;

@@ -1,5 +1,5 @@
 // limits_helpers.hpp - what the tests of hostile inputs share (test_limits.cpp, issue 15;
-// test_trust.cpp, issue 48): messages, temporary directories, a forked child under a memory
+// test_trust.cpp, issue 48; test_checkpoint.cpp, test_movingai.cpp): messages, temporary directories, a forked child under a memory
 // cap, small valid model and dataset files.
 #pragma once
 #include "madbp_train.hpp"
@@ -44,12 +44,17 @@ struct TempDir {
         path = tmpl;
     }
     ~TempDir() {
+        for (auto& f : files()) ::unlink((path + "/" + f).c_str());
+        ::rmdir(path.c_str());
+    }
+    std::vector<std::string> files() const {  // the names in it, "." and ".." left out
+        std::vector<std::string> out;
         if (DIR* d = opendir(path.c_str())) {
             while (dirent* e = readdir(d))
-                if (std::string(e->d_name) != "." && std::string(e->d_name) != "..") ::unlink((path + "/" + e->d_name).c_str());
+                if (std::string(e->d_name) != "." && std::string(e->d_name) != "..") out.push_back(e->d_name);
             closedir(d);
         }
-        ::rmdir(path.c_str());
+        return out;
     }
     std::string file(const std::string& name) const { return path + "/" + name; }
 };

@@ -2,6 +2,7 @@
 // byte layout Python's safetensors expects, atomic writes, and a clear std::runtime_error for
 // every kind of bad file (truncated, inconsistent offsets or shapes, NaN payloads, random bytes).
 #include "madbp_train.hpp"  // optimizer-state checkpoints live with training
+#include "limits_helpers.hpp"  // TempDir, contains
 
 #include <doctest/doctest.h>
 
@@ -14,30 +15,6 @@ using madbp::ParamStore;
 using madbp::Rng;
 
 namespace {
-
-// A fresh directory under /tmp, removed with its files at scope exit.
-struct TempDir {
-    std::string path;
-    TempDir() {
-        char tmpl[] = "/tmp/madbp_ckpt_XXXXXX";
-        REQUIRE(mkdtemp(tmpl) != nullptr);
-        path = tmpl;
-    }
-    ~TempDir() {
-        for (auto& f : files()) ::unlink((path + "/" + f).c_str());
-        ::rmdir(path.c_str());
-    }
-    std::vector<std::string> files() const {
-        std::vector<std::string> out;
-        if (DIR* d = opendir(path.c_str())) {
-            while (dirent* e = readdir(d))
-                if (std::string(e->d_name) != "." && std::string(e->d_name) != "..") out.push_back(e->d_name);
-            closedir(d);
-        }
-        return out;
-    }
-    std::string file(const std::string& name) const { return path + "/" + name; }
-};
 
 // A small model's parameters: two layers and BatchNorm statistics.
 struct TinyModel {
@@ -70,7 +47,6 @@ std::string error_of(const std::vector<uint8_t>& bytes) {
     return "";
 }
 
-bool contains(const std::string& s, const std::string& part) { return s.find(part) != std::string::npos; }
 
 }  // namespace
 

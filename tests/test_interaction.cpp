@@ -808,7 +808,7 @@ TEST_CASE("route steps: the guided expert's wavefront, so around a barrier the l
 }
 
 TEST_CASE("sampler: the end bend makes a window that heads for its pinned goal arrive, and keeps one that leaves") {
-    // Robot 0 heads for its goal 0.3 ahead but the oracle's window stops 0.1 short of it; robot 1's
+    // Robot 0 heads for its goal 0.3 ahead but the oracle's window ends 0.1 short of it; robot 1's
     // goal is 0.2 away too, but its window leaves it (making way); robot 2's goal is out of reach.
     const ModelConfig c = tiny_config();
     const int H = c.horizon;

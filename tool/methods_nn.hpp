@@ -48,9 +48,7 @@ inline PlannerChoice read_planner_choice(Args& a, const MethodSetup* setup = nul
 // The planner policy of one episode: one planner for the team (plan), or one per robot
 // (--decentralised, plan_robot). Planners keep workspaces: every episode gets its own.
 inline madbp::PolicyFactory planner_factory(std::shared_ptr<const madbp::MadbpModel> model, const PlannerChoice& o) {
-    if (o.settings.sampler.sample_steps > model->config.diffusion_steps)
-        throw std::invalid_argument("planner setting sampler.sample_steps: must be <= the model's diffusion steps (" +
-                                    std::to_string(model->config.diffusion_steps) + ")");
+    // (sampler.sample_steps needs no check against the model here: it is capped at the model's own S.)
     return [model, o](const madbp::World&, uint64_t seed) -> std::unique_ptr<madbp::Policy> {
         if (o.decentralised)
             return std::make_unique<madbp::PlanFollower>(
