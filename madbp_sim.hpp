@@ -122,7 +122,7 @@ constexpr int kMaxObstacles = 4096;            // discs + boxes of one map (Worl
 constexpr int kMaxSceneAgents = 1024;          // 'agent' lines of one scene
 constexpr size_t kMaxSceneBytes = 1 << 20;     // size of a scene file or text, bytes
 constexpr int kMaxAgentId = (1 << 30) - 1;     // largest agent id World::add_agent accepts or hands out
-constexpr int kExpertMaxGridSide = 192;        // guided expert: planning grid side, cells (coarser cells beyond)
+constexpr int kRouteMaxGridSide = 2304;        // routing grid side, cells: 0.036 up to half-size 41.4, coarser beyond
 constexpr int kExpertMaxHorizon = 256;         // guided expert: world steps planned ahead (plus extra_horizon)
 constexpr double kMaxSvgPixels = 4096;         // side of a rendered picture, pixels (larger worlds are drawn smaller)
 constexpr double kMaxSceneCoordinate = 1000;   // |number| of a scene's disc or box (10 x kMaxHalfSize)
@@ -186,6 +186,7 @@ inline std::string number_text(double v) {
 #include <sstream>
 #include <sys/file.h>
 #include <sys/stat.h>
+#include <unordered_map>
 #include <utility>
 #include <vector>
 
@@ -353,18 +354,23 @@ inline WorldMap make_map(const std::string& name, Rng& rng, double half_size = 1
 
 // Static clearance (distance from the cell centre to the nearest obstacle or wall surface) on
 // a square grid over the world; cell k is (row k / n, column k % n), row 0 = lowest y. The
-// side is the world's width in cells of about `cell_wanted`, at most `max_side` (>= 2): a larger
-// world gets coarser cells, `stretch` = (side wanted) / n > 1 times as wide (1 when not capped).
-// The cell grid of the map: the guided expert and the route guide plan on it (Section 12), the
-// interaction scenes check reachability on its layout (Section 4b); the model's occupancy raster
-// is Grid (Section 5), the planner's node-sampled fields DistanceField (madbp.hpp).
+// side is the world's width in cells of about `cell_wanted`, at most `max_side` (>= 2): only a
+// world wider than max_side cells gets coarser cells, `stretch` = (side wanted) / n > 1 times as
+// wide (1 when not capped). The routing grid (Section 12: wavefront, RouteGuide, GuidedExpert)
+// keeps cells of 0.036 up to half-size 41.4 (kRouteMaxGridSide): docs/design.md, "Routing at any
+// scale". `clear` is exact below kClearanceReach and kClearanceReach beyond it (routing reads
+// thresholds of 0.1-0.3), so each obstacle fills only the cells within reach of it: a grid of
+// 2304^2 cells over 4096 boxes fills in well under a second.
+// The interaction scenes check reachability on its layout (Section 4b); the model's occupancy
+// raster is Grid (Section 5), the planner's node-sampled fields DistanceField (madbp.hpp).
+constexpr double kClearanceReach = 1.0;
 struct ClearanceGrid {
     int n = 0;
     double cell = 0.04, half = 1.2, stretch = 1;
     std::vector<float> clear;
     ClearanceGrid() = default;
     // fill = false: the layout only (n, cell, stretch; `clear` left empty).
-    ClearanceGrid(const WorldMap& map, double cell_wanted, int max_side = kExpertMaxGridSide, bool fill = true) : half(map.half_size) {
+    ClearanceGrid(const WorldMap& map, double cell_wanted, int max_side = kRouteMaxGridSide, bool fill = true) : half(map.half_size) {
         if (!(cell_wanted > 0) || !std::isfinite(cell_wanted) || max_side < 2)
             throw std::invalid_argument("ClearanceGrid: needs cell > 0 and max_side >= 2 (got " + std::to_string(cell_wanted) + ", " +
                                         std::to_string(max_side) + ")");
@@ -372,9 +378,7 @@ struct ClearanceGrid {
         n = (int)std::min(wanted, (double)max_side);
         stretch = wanted > n ? wanted / n : 1.0;
         cell = 2 * half / n;
-        if (!fill) return;
-        clear.resize((size_t)n * n);
-        for (int k = 0; k < n * n; ++k) clear[k] = (float)static_clearance(map, centre(k));
+        if (fill) fill_clearance(map);
     }
     int index(Vec2 p) const {
         int col = std::clamp((int)std::floor((p.x + half) / cell), 0, n - 1);
@@ -382,6 +386,25 @@ struct ClearanceGrid {
         return row * n + col;
     }
     Vec2 centre(int k) const { return {-half + (k % n + 0.5) * cell, -half + (k / n + 0.5) * cell}; }
+
+private:
+    void fill_clearance(const WorldMap& map) {
+        clear.resize((size_t)n * n);
+        for (int k = 0; k < n * n; ++k) {  // the border walls, then each obstacle over the cells within reach
+            const Vec2 c = centre(k);
+            clear[k] = (float)std::min(kClearanceReach, half - std::max(std::fabs(c.x), std::fabs(c.y)));
+        }
+        auto lower = [&](Vec2 lo, Vec2 hi, auto&& distance) {
+            auto at = [&](double v) { return std::clamp((int)std::floor((v + half) / cell), 0, n - 1); };
+            for (int row = at(lo.y - kClearanceReach); row <= at(hi.y + kClearanceReach); ++row)
+                for (int col = at(lo.x - kClearanceReach); col <= at(hi.x + kClearanceReach); ++col) {
+                    float& v = clear[(size_t)row * n + col];
+                    v = std::min(v, (float)distance(centre(row * n + col)));
+                }
+        };
+        for (const Disc& d : map.discs) lower(d.c - Vec2{d.r, d.r}, d.c + Vec2{d.r, d.r}, [&](Vec2 p) { return norm(p - d.c) - d.r; });
+        for (const Box& b : map.boxes) lower(b.lo, b.hi, [&](Vec2 p) { return box_distance(b, p); });
+    }
 };
 
 // =============================================================================================
@@ -762,7 +785,7 @@ namespace detail {
 // filled grid could round a cell across the line, and the scenes drawn would change).
 inline bool all_reachable(const WorldMap& map, const std::vector<Vec2>& from, const std::vector<Vec2>& to, double cell = 0.036,
                           double min_clear = 0.13) {
-    const ClearanceGrid g(map, cell, kExpertMaxGridSide, /*fill*/ false);
+    const ClearanceGrid g(map, cell, kRouteMaxGridSide, /*fill*/ false);
     const int n = g.n;
     std::vector<uint8_t> free((size_t)n * n), seen;
     for (int k = 0; k < n * n; ++k) free[k] = static_clearance(map, g.centre(k)) >= min_clear;
@@ -2321,43 +2344,87 @@ struct ClosedCells {
     bool closes(int k) const { return label && (*label)[k] == id; }
 };
 
-// The wavefront: steps from every cell to `goal_cell` moving one cell per step in 8
-// directions through cells whose clearance is >= `min_clear` (the goal cell always counts) and
-// that `closed` does not close. Breadth-first search; -1 where the goal cannot be reached.
-inline std::vector<int> wavefront(const ClearanceGrid& cg, int goal_cell, double min_clear, ClosedCells closed = {}) {
+// Which cells a route may use and which it would rather not (RouteGuide and GuidedExpert share
+// it; docs/design.md, "Routing at any scale"). A cell is passable when its centre's clearance is
+// >= `min`, just above the robot radius, so that an axis-aligned passage >= 0.25 wide always holds
+// a row of passable 0.036 cells (its centre band, 0.046 wide, cannot fall between two rows). A
+// step into a cell below `preferred` costs `narrow_cost` extra steps: wide ways are taken where
+// they are not much longer, as when `preferred` was a hard limit (before 0.4).
+struct RouteClearance {
+    double min = 0.102;       // passable at this clearance or more, world units (radius 0.1 + 0.002)
+    double preferred = 0.13;  // a step into a cell with less costs narrow_cost extra, world units
+    int narrow_cost = 8;      // extra cost of such a step, steps, in [0, 1000]
+    int step_cost(float clear) const { return 1 + (clear < preferred ? narrow_cost : 0); }
+    void check(const char* owner) const {
+        if (!(min >= 0) || !std::isfinite(min) || !(preferred >= min) || !std::isfinite(preferred))
+            throw std::invalid_argument(std::string(owner) + ".min_clear: needs 0 <= min_clear <= preferred clearance (got " + number_text(min) + ", " +
+                                        number_text(preferred) + ")");
+        if (narrow_cost < 0 || narrow_cost > 1000)
+            throw std::invalid_argument(std::string(owner) + ".narrow_cost: must be in [0, 1000] (got " + std::to_string(narrow_cost) + ")");
+    }
+};
+
+// The wavefront: the cost from every cell to `goal_cell` moving one cell per step in 8
+// directions through passable cells (the goal cell always counts) that `closed` does not close,
+// each step costing route.step_cost of the cell it enters (1 when narrow_cost is 0: the steps of
+// a breadth-first search). Dial's bucket queue (costs are small integers); -1 where the goal
+// cannot be reached. Memory: 4 bytes a cell, plus the queue.
+inline std::vector<int> wavefront(const ClearanceGrid& cg, int goal_cell, const RouteClearance& route, ClosedCells closed = {}) {
     std::vector<int> steps((size_t)cg.n * cg.n, -1);
-    std::vector<int> queue{goal_cell};
+    const int buckets = route.narrow_cost + 2;  // costs are 1 or 1 + narrow_cost: a ring of this many levels
+    std::vector<std::vector<int>> ring(buckets);
     steps[goal_cell] = 0;
-    for (size_t head = 0; head < queue.size(); ++head) {
-        const int k = queue[head];
-        detail::for_each_neighbour(cg.n, k, [&](int k2) {
-            if (steps[k2] >= 0 || cg.clear[k2] < min_clear || closed.closes(k2)) return;
-            steps[k2] = steps[k] + 1;
-            queue.push_back(k2);
-        });
+    ring[0].push_back(goal_cell);
+    long pending = 1;
+    for (int d = 0; pending > 0; ++d) {
+        std::vector<int>& level = ring[d % buckets];
+        for (size_t i = 0; i < level.size(); ++i) {
+            const int k = level[i];
+            --pending;
+            if (steps[k] != d) continue;  // reached more cheaply since it was queued
+            const int d2 = d + route.step_cost(cg.clear[k]);  // moving from a neighbour into k
+            detail::for_each_neighbour(cg.n, k, [&](int k2) {
+                if ((steps[k2] >= 0 && steps[k2] <= d2) || cg.clear[k2] < route.min || closed.closes(k2)) return;
+                steps[k2] = d2;
+                ring[d2 % buckets].push_back(k2);
+                ++pending;
+            });
+        }
+        level.clear();
     }
     return steps;
 }
+// Steps through cells with clearance >= min_clear (a breadth-first search, no narrow cost).
+inline std::vector<int> wavefront(const ClearanceGrid& cg, int goal_cell, double min_clear, ClosedCells closed = {}) {
+    return wavefront(cg, goal_cell, RouteClearance{min_clear, min_clear, 0}, closed);
+}
 
 // Route subgoals (issue 13): where a robot should head next on its shortest way around the
-// static map to a goal that may be far away. The wavefront of the goal's cell (computed once per
-// map and goal cell, like the expert's) is walked downhill from the robot's cell; the subgoal is
-// the last cell centre of that walk that is still in straight view of the robot (the segment
-// keeps `view_clear` from the map, checked every half cell) and at most `distance` from it. When the goal itself is
-// within `distance` and in view, or the walk arrives, the goal is returned and `final` is set.
+// static map to a goal that may be far away. When the straight segment to the goal keeps the
+// preferred clearance on the grid (straight()), that is the way and no field is made. Otherwise
+// the wavefront of the goal's cell (made once per map, goal cell and closed set, and cached) is
+// walked downhill from the robot's cell; the subgoal is the last cell centre of that walk that
+// is still in straight view of the robot's position (the segment keeps `view_clear` from the
+// map, checked every half cell) and at most `distance` from it. When the goal itself is within
+// `distance` and in view, or the walk arrives, the goal is returned and `final` is set.
 // A route may be asked to keep out of some cells (ClosedCells: a corridor others are using; the
 // walk, the view and the wavefront then avoid them).
-// Memory: the grid plus at most kMaxFields wavefronts (the cache starts again beyond).
+// Memory: the grid (4 bytes a cell, <= kRouteMaxGridSide^2) plus wavefronts (4 bytes a cell
+// each) up to kFieldCacheBytes; beyond, the least recently used ones are dropped.
 struct RouteGoal {
     Vec2 goal;           // where to head: the goal itself or a subgoal on the way
     bool final = true;   // goal is the robot's real goal (the planner may pin the window's end to it)
 };
 class RouteGuide {
 public:
-    static constexpr int kMaxFields = 1024;
+    static constexpr size_t kFieldCacheBytes = size_t(128) << 20;
     double cell = 0.036;        // planning cells, world units (the expert's)
-    double clear = 0.13;        // the walk keeps cells with this clearance (the expert's inflate)
+    double clear = 0.13;        // the route prefers cells with this clearance (RouteClearance::preferred; the expert's inflate)
+    double min_clear = 0.102;   // and passes cells with this much (RouteClearance::min)
+    int narrow_cost = 8;        // extra cost of a step into a cell below `clear` (RouteClearance::narrow_cost)
     double view_clear = 0.1;    // a subgoal is visible when the segment to it keeps this clearance (robot radius)
+
+    RouteClearance route() const { return {min_clear, clear, narrow_cost}; }
 
     // The subgoal from p toward goal on `map`, at most `distance` (> 0) world units from p.
     RouteGoal subgoal(const WorldMap& map, Vec2 p, Vec2 goal, double distance, ClosedCells closed = {}) {
@@ -2365,6 +2432,10 @@ public:
         set_map(map);
         check(closed);
         if (norm(goal - p) <= distance && visible(p, goal, closed)) return {goal, true};
+        if (straight_way(p, goal, closed)) {  // no field needed: `distance` along the segment
+            const Vec2 d = goal - p;
+            return norm(d) <= distance ? RouteGoal{goal, true} : RouteGoal{p + d * (distance / norm(d)), false};
+        }
         const std::vector<int>& steps = field(grid_.index(goal), closed);
         int k = start_cell(steps, grid_.index(p));
         if (k < 0) return {goal, true};  // no route known from here: head straight for the goal
@@ -2399,10 +2470,21 @@ public:
         check(closed);
         return visible(a, b, closed);
     }
+    // The segment a-b crosses only cells with the preferred clearance (`clear`), none closed:
+    // read from the grid (no distance to the map is computed), so it is cheap at any length.
+    bool straight(const WorldMap& map, Vec2 a, Vec2 b, ClosedCells closed = {}) {
+        set_map(map);
+        check(closed);
+        return straight_way(a, b, closed);
+    }
     const ClearanceGrid& grid() const { return grid_; }
     const ClearanceGrid& grid(const WorldMap& map) { set_map(map); return grid_; }  // the grid made for `map`
+    // The wavefront (route cost per cell, -1: unreachable) of goal's cell on `map`; valid until
+    // the next call that may make a field.
+    const std::vector<int>& steps_to(const WorldMap& map, Vec2 goal) { set_map(map); return field(grid_.index(goal)); }
     // Wavefront steps from p's cell to goal's, the guided expert's priority key (its plan cells
-    // and clearance); kRouteUnreachable when no route is known.
+    // and clearance; a step into a narrow cell counts 1 + narrow_cost); kRouteUnreachable when no
+    // route is known.
     static constexpr int kRouteUnreachable = 1 << 20;
     int route_steps(const WorldMap& map, Vec2 p, Vec2 goal) {
         set_map(map);
@@ -2418,25 +2500,50 @@ public:
         const int k = start_cell(steps, grid_.index(p));
         return k >= 0 ? steps[k] : kRouteUnreachable;
     }
+    // Bytes held: the grid and the cached wavefronts (capacities), <= grid + kFieldCacheBytes
+    // (one field more while it is being made).
+    size_t workspace_bytes() const {
+        size_t bytes = grid_.clear.capacity() * sizeof(float);
+        for (const auto& f : fields_) bytes += f.second.steps.capacity() * sizeof(int);
+        return bytes;
+    }
+    size_t fields_cached() const { return fields_.size(); }
 
 private:
     ClearanceGrid grid_;
     WorldMap map_;
+    struct Field {
+        std::vector<int> steps;
+        uint64_t used = 0;  // when last asked for (least recently used goes first)
+    };
+    std::map<std::pair<int, uint64_t>, Field> fields_;  // (goal cell, closed key) -> wavefront
+    uint64_t clock_ = 0;
+    size_t field_bytes_ = 0;
 
     void set_map(const WorldMap& map) {
         if (grid_.n > 0 && map == map_) return;
+        route().check("RouteGuide");
         grid_ = ClearanceGrid(map, cell);
         map_ = map;
         fields_.clear();
+        field_bytes_ = 0;
     }
-    std::map<std::pair<int, uint64_t>, std::vector<int>> fields_;  // (goal cell, closed key) -> wavefront steps
-
     const std::vector<int>& field(int goal_cell, ClosedCells closed = {}) {
         const std::pair<int, uint64_t> key{goal_cell, closed.label ? closed.key : 0};
         auto it = fields_.find(key);
-        if (it != fields_.end()) return it->second;
-        if ((int)fields_.size() >= kMaxFields) fields_.clear();
-        return fields_.emplace(key, wavefront(grid_, goal_cell, clear, closed)).first->second;
+        if (it == fields_.end()) {
+            const size_t bytes = (size_t)grid_.n * grid_.n * sizeof(int);
+            while (!fields_.empty() && field_bytes_ + bytes > kFieldCacheBytes) {
+                auto oldest = fields_.begin();
+                for (auto f = fields_.begin(); f != fields_.end(); ++f) if (f->second.used < oldest->second.used) oldest = f;
+                field_bytes_ -= oldest->second.steps.size() * sizeof(int);
+                fields_.erase(oldest);
+            }
+            it = fields_.emplace(key, Field{wavefront(grid_, goal_cell, route(), closed), 0}).first;
+            field_bytes_ += bytes;
+        }
+        it->second.used = ++clock_;
+        return it->second.steps;
     }
     void check(ClosedCells closed) const {
         if (closed.label && closed.label->size() != (size_t)grid_.n * grid_.n)
@@ -2448,6 +2555,16 @@ private:
         for (int i = 0; i <= samples; ++i) {
             const Vec2 q = a + (b - a) * ((double)i / samples);
             if (static_clearance(map_, q) < view_clear || closed.closes(grid_.index(q))) return false;
+        }
+        return true;
+    }
+    // Every half cell of a-b lies in a cell with the preferred clearance: the point is then within
+    // half a cell diagonal (0.026) of that cell's centre, so it keeps clear - 0.026 >= view_clear.
+    bool straight_way(Vec2 a, Vec2 b, ClosedCells closed) const {
+        const int samples = 1 + (int)std::ceil(norm(b - a) / (0.5 * grid_.cell));
+        for (int i = 0; i <= samples; ++i) {
+            const int k = grid_.index(a + (b - a) * ((double)i / samples));
+            if (grid_.clear[k] < clear || closed.closes(k)) return false;
         }
         return true;
     }
@@ -2466,58 +2583,185 @@ private:
             }
         return best;
     }
-    // Downhill from cell k: among the neighbours one step closer, the one nearest the goal
-    // (straighter paths); -1 when there is none.
+    // Downhill from cell k: among the neighbours on a cheapest way from k (their cost plus the
+    // step into them is k's), the one nearest the goal (straighter paths); -1 when there is none.
     int downhill(const std::vector<int>& steps, int k, Vec2 goal) const {
         int next = -1;
+        const RouteClearance r = route();
         detail::for_each_neighbour(grid_.n, k, [&](int k2) {
-            if (steps[k2] == steps[k] - 1 && (next < 0 || norm(grid_.centre(k2) - goal) < norm(grid_.centre(next) - goal))) next = k2;
+            if (steps[k2] >= 0 && steps[k2] + r.step_cost(grid_.clear[k2]) == steps[k] &&
+                (next < 0 || norm(grid_.centre(k2) - goal) < norm(grid_.centre(next) - goal)))
+                next = k2;
         });
         return next;
     }
 };
 
+namespace detail {
+// The states a space-time search has reached, (step, cell) -> cost and parent: a list of nodes
+// and an open-addressing table over it (linear probing, at most half full), so memory follows
+// the states reached (at most 8 per expansion plus the start), not steps x cells.
+struct SpaceTimeStates {
+    struct Node { int t, cell; float g; int parent; };
+    std::vector<Node> nodes;
+    std::vector<int> slots;  // node index, -1 empty; a power of 2 long
+    void clear() {
+        nodes.clear();
+        std::vector<int>(1024, -1).swap(slots);  // also gives back a large table of the last search
+    }
+    // The node of (t, cell); a new one costs +infinity and has no parent.
+    int find_or_add(int t, int cell) {
+        if (2 * (nodes.size() + 1) > slots.size()) grow();
+        const size_t mask = slots.size() - 1;
+        for (size_t i = hash(t, cell) & mask;; i = (i + 1) & mask) {
+            const int k = slots[i];
+            if (k >= 0 && nodes[k].t == t && nodes[k].cell == cell) return k;
+            if (k >= 0) continue;
+            slots[i] = (int)nodes.size();
+            nodes.push_back({t, cell, std::numeric_limits<float>::infinity(), -1});
+            return slots[i];
+        }
+    }
+    size_t bytes() const { return nodes.capacity() * sizeof(Node) + slots.capacity() * sizeof(int); }
+
+private:
+    static size_t hash(int t, int cell) {
+        uint64_t x = ((uint64_t)(uint32_t)t << 32 | (uint32_t)cell) * 0x9E3779B97F4A7C15ull;
+        return (size_t)(x ^ (x >> 29));
+    }
+    void grow() {
+        std::vector<int>(slots.size() * 2, -1).swap(slots);
+        const size_t mask = slots.size() - 1;
+        for (size_t k = 0; k < nodes.size(); ++k) {
+            size_t i = hash(nodes[k].t, nodes[k].cell) & mask;
+            while (slots[i] >= 0) i = (i + 1) & mask;
+            slots[i] = (int)k;
+        }
+    }
+};
+
+// The planned centres of higher-priority robots, by step and by square buckets of cells:
+// count() is how many robots reserve a cell at a step (one of their centres there is within the
+// reservation disc). Memory follows the centres (robots x steps x (hold + 2)), not the grid.
+struct Reservations {
+    struct Centre { int robot, cell; };
+    int n = 0, R = 0, side = 1, buckets = 1;  // grid side; disc radius and bucket side, cells; buckets a side
+    std::vector<char> disc;                   // (2R + 1)^2: the offset is inside the disc
+    std::unordered_map<uint64_t, std::vector<Centre>> at;  // (step, bucket) -> centres
+    size_t centres = 0;
+
+    // A disc of radius `reach` (world units) on a grid of `grid_side` cells of `cell`.
+    void reset(int grid_side, double cell, double reach) {
+        n = grid_side;
+        R = (int)std::ceil(reach / cell);
+        side = R + 1;
+        buckets = (n + side - 1) / side;
+        disc.assign((size_t)(2 * R + 1) * (2 * R + 1), 0);
+        for (int dr = -R; dr <= R; ++dr)
+            for (int dc = -R; dc <= R; ++dc) disc[(size_t)(dr + R) * (2 * R + 1) + dc + R] = std::hypot(dr, dc) * cell < reach;
+        at.clear();
+        centres = 0;
+    }
+    void add(int robot, int t, int cell) {
+        at[key(t, cell / n / side, cell % n / side)].push_back({robot, cell});
+        ++centres;
+    }
+    // The centres at step t whose disc may reach cell c or one of its neighbours, into `out`.
+    void near(int t, int c, std::vector<Centre>& out) const {
+        out.clear();
+        if (at.empty()) return;
+        const int row = c / n, col = c % n;
+        for (int br = std::max(0, (row - R - 1) / side); br <= std::min(buckets - 1, (row + R + 1) / side); ++br)
+            for (int bc = std::max(0, (col - R - 1) / side); bc <= std::min(buckets - 1, (col + R + 1) / side); ++bc) {
+                auto it = at.find(key(t, br, bc));
+                if (it != at.end()) out.insert(out.end(), it->second.begin(), it->second.end());
+            }
+    }
+    // How many robots of `near` reserve `cell`.
+    int count(const std::vector<Centre>& near, int cell) const {
+        int robots = 0, last = -1;
+        const int row = cell / n, col = cell % n;
+        for (size_t i = 0; i < near.size(); ++i) {
+            const Centre& e = near[i];
+            const int dr = e.cell / n - row, dc = e.cell % n - col;
+            if (std::abs(dr) > R || std::abs(dc) > R || !disc[(size_t)(dr + R) * (2 * R + 1) + dc + R] || e.robot == last) continue;
+            bool counted = false;  // a robot's centres at one step may lie in several buckets
+            for (size_t j = 0; j < i && !counted; ++j) {
+                const Centre& o = near[j];
+                const int r2 = o.cell / n - row, c2 = o.cell % n - col;
+                counted = o.robot == e.robot && std::abs(r2) <= R && std::abs(c2) <= R && disc[(size_t)(r2 + R) * (2 * R + 1) + c2 + R];
+            }
+            if (!counted) ++robots;
+            last = e.robot;
+        }
+        return robots;
+    }
+    size_t bytes() const { return centres * sizeof(Centre) + at.size() * (sizeof(uint64_t) + sizeof(std::vector<Centre>) + 2 * sizeof(void*)); }
+
+private:
+    uint64_t key(int t, int br, int bc) const { return ((uint64_t)t * buckets + br) * buckets + bc; }
+};
+}  // namespace detail
+
 // The guided expert: a privileged classical planner that makes the training demonstrations
 // and a strong classical row. Every `replan_every` steps it plans all agents one after the
 // other in priority order (prioritized planning, a space-time A* per agent):
-//   - space: a grid of cell `cell` (one cell per step = 0.36 units/s along an axis), cells
-//     closer than `inflate` to an obstacle or wall excluded; at most kExpertMaxGridSide cells
-//     a side (half-size <= 3.45 at the default cell): a larger world gets coarser cells, each
-//     taking `stretch` world steps, with waypoints interpolated along the path between them;
+//   - space: the routing grid of a RouteGuide (cells of `cell`, one cell per step = 0.36
+//     units/s along an axis, up to half-size 41.4: kRouteMaxGridSide; a larger world gets
+//     coarser cells, each taking `stretch` world steps, with waypoints interpolated along the
+//     path between them); cells closer than `min_clear` to an obstacle or wall are not
+//     entered, and a step into one closer than `inflate` costs `narrow_cost` extra (RouteClearance);
 //   - time: the agent's path is a cell per step; waiting is a move; plans look at most
-//     kExpertMaxHorizon + extra_horizon world steps ahead, so memory is bounded at any world
-//     size and step limit;
-//   - heuristic: the wavefront (BFS) steps to the goal around the static map, exact when no
-//     other agent is in the way;
+//     kExpertMaxHorizon + extra_horizon world steps ahead; a search ends at its first state
+//     on the horizon when no arrival is cheaper;
+//   - heuristic: the guide's wavefront cost to the goal around the static map, exact when no
+//     other agent is in the way (the Chebyshev distance when the straight way is clear: no field);
 //   - conflicts: the planned centres of higher-priority agents reserve a disc of radius
 //     2 r + buffer at every step; each step inside a reservation costs `conflict_cost` extra
 //     steps (soft, so a plan always exists; the agent waits, detours or makes way when that
-//     is cheaper), and arriving at the goal is charged for later reservations there.
+//     is cheaper), and arriving at the goal is charged for later reservations there;
+//   - start: plans start from the robot's position: the first waypoints blend from it onto
+//     the path's cell centres over replan_every steps (a robot is never told to go back to
+//     its cell's centre first);
+//   - memory, at any world size: the guide's grid and wavefront cache (RouteGuide), the
+//     reached states of one search (at most 8 max_expansions + 1, detail::SpaceTimeStates)
+//     and the reservations (robots x steps x (hold + 2) centres, detail::Reservations).
 // Priorities: agents still travelling before agents that have arrived (those step aside and
-// come back), then the longer wavefront distance at the start first, then the id. The plan
+// come back), then the longer route cost at the start first, then the id. The plan
 // is tracked with the SPEC 3.2 tracker and made safe by the safety filter, in which a
 // higher-priority agent weighs more (deviates less; lower ones make way).
 struct ExpertParams {
     double cell = 0.036;          // planning cell, world units (distance per step at cruise)
-    double inflate = 0.13;        // clearance kept from obstacles and walls (radius + 0.03), world units
+    double inflate = 0.13;        // clearance preferred from obstacles and walls (radius + 0.03), world units
+    double min_clear = 0.102;     // clearance a planned centre keeps at least (radius + 0.002), world units
+    int narrow_cost = 8;          // extra cost of a step into a cell closer than `inflate`, steps, [0, 1000]
     double buffer = 0.04;         // planned centres of two agents stay >= 2 r + buffer apart (the filter keeps 2 r + 0.03), world units
     double conflict_cost = 8;     // extra cost of a step inside another agent's reservation, steps
     int hold = 1;                 // a planned position stays reserved from one step before to `hold` steps after, for lag
     int replan_every = 5;         // steps between plans, >= 1
     double replan_error = 0.1;    // replan early when an agent is this far from its waypoint, world units
     int extra_horizon = 20;       // plans may run this many steps past the episode's step limit, [0, kExpertMaxHorizon]
-    int max_expansions = 200000;  // A* budget per agent and plan
+    int max_expansions = 200000;  // A* budget per agent and plan, >= 1 (its memory: <= ~56 bytes per expansion)
     double priority_weight = 4;   // safety-filter weight of the highest-priority agent (the lowest has 1), >= 1
     TrackerParams tracker;
     SafetyFilterParams filter;
+    RouteClearance route() const { return {min_clear, inflate, narrow_cost}; }
 };
 
 class GuidedExpert : public Policy {
 public:
-    explicit GuidedExpert(const WorldMap& map, ExpertParams p = ExpertParams{}) : prm_(p), grid_(map, p.cell) {
+    explicit GuidedExpert(const WorldMap& map, ExpertParams p = ExpertParams{}) : prm_(p) {
         if (prm_.replan_every < 1) throw std::invalid_argument("ExpertParams.replan_every: must be >= 1");
         if (prm_.extra_horizon < 0 || prm_.extra_horizon > kExpertMaxHorizon)
             throw std::invalid_argument("ExpertParams.extra_horizon: must be in [0, kExpertMaxHorizon = " + std::to_string(kExpertMaxHorizon) + "]");
+        if (prm_.max_expansions < 1) throw std::invalid_argument("ExpertParams.max_expansions: must be >= 1");
+        if (prm_.hold < 0) throw std::invalid_argument("ExpertParams.hold: must be >= 0");
+        prm_.route().check("ExpertParams");
+        guide_.cell = prm_.cell;
+        guide_.clear = prm_.inflate;
+        guide_.min_clear = prm_.min_clear;
+        guide_.narrow_cost = prm_.narrow_cost;
+        guide_.grid(map);
     }
 
     std::vector<Vec2> act(const World& world) override {
@@ -2543,31 +2787,25 @@ public:
     double decision_ms() const override { return plans_ ? total_ms_ / plans_ : 0; }
     // The current plan: waypoints of every agent from the step it was made.
     const Plan& plan() const { return plan_; }
-    // The planning grid (its side n <= kExpertMaxGridSide).
-    const ClearanceGrid& grid() const { return grid_; }
+    // The planning grid: the route guide's (its side n <= kRouteMaxGridSide).
+    const ClearanceGrid& grid() const { return guide_.grid(); }
+    // Bytes of the planning workspace: the guide's grid and fields, the last search's states and
+    // the last plan's reservations (capacities).
+    size_t workspace_bytes() const { return guide_.workspace_bytes() + states_.bytes() + reserved_.bytes(); }
+    const RouteGuide& guide() const { return guide_; }
 
 private:
     ExpertParams prm_;
-    ClearanceGrid grid_;
-    std::map<int, std::vector<int>> fields_;  // goal cell -> wavefront steps
-    std::map<int, int> initial_steps_;        // agent id -> wavefront steps from its start
+    RouteGuide guide_;                        // grid and wavefronts (shared representation, Section 12)
+    std::map<int, int> initial_steps_;        // agent id -> route cost from its start
     Plan plan_;
     std::vector<int> rank_;                   // per plan entry: 0 = highest priority
     int plan_t0_ = 0, plans_ = 0;
     double total_ms_ = 0;
-    // Space-time search state, reused across searches: state = t * cells + cell.
-    std::vector<uint8_t> reserved_;
-    std::vector<float> cost_;
-    std::vector<int> parent_;
-    std::vector<uint32_t> seen_;
-    std::vector<int> mark_;                   // per cell: last step it was reserved by the current agent
-    uint32_t generation_ = 0;
+    detail::SpaceTimeStates states_;          // one search's states, reused
+    detail::Reservations reserved_;           // the plan's reservations so far
+    std::vector<detail::Reservations::Centre> near_;
 
-    const std::vector<int>& field(int goal_cell) {
-        auto it = fields_.find(goal_cell);
-        if (it == fields_.end()) it = fields_.emplace(goal_cell, wavefront(grid_, goal_cell, prm_.inflate)).first;
-        return it->second;
-    }
     int plan_index(int id) const {
         for (size_t i = 0; i < plan_.ids.size(); ++i) if (plan_.ids[i] == id) return (int)i;
         return -1;
@@ -2585,68 +2823,70 @@ private:
         }
         return false;
     }
+    // Chebyshev distance between two cells (steps on an open grid).
+    static int chebyshev(int n, int a, int b) { return std::max(std::abs(a / n - b / n), std::abs(a % n - b % n)); }
+    // The route cost from p to goal: the Chebyshev steps when the straight way is clear, else the wavefront's.
+    int route_cost(const WorldMap& map, Vec2 p, Vec2 goal) {
+        const ClearanceGrid& g = guide_.grid(map);
+        if (guide_.straight(map, p, goal)) return chebyshev(g.n, g.index(p), g.index(goal));
+        return guide_.route_steps(map, p, goal);
+    }
 
     void make_plan(const World& world) {
         const auto& ag = world.agents();
-        const int n = (int)ag.size(), N = grid_.n * grid_.n;
+        const int n = (int)ag.size();
+        const ClearanceGrid& grid = guide_.grid(world.map());
         const double r = world.config().radius;
         // World steps planned (waypoints), and grid steps searched: one per `stretch` world steps.
         const int T_world = std::min(std::max(1, world.config().max_steps - world.t()), kExpertMaxHorizon) + prm_.extra_horizon;
-        const int T = grid_.stretch > 1 ? std::max(1, (int)std::ceil(T_world / grid_.stretch)) : T_world;
-        reserved_.assign((size_t)(T + 1) * N, 0);
-        // Priority order: the longest wavefront path from where the robot was first seen goes first.
+        const int T = grid.stretch > 1 ? std::max(1, (int)std::ceil(T_world / grid.stretch)) : T_world;
+        // Priority order: the longest route from where the robot was first seen goes first.
         for (int i = 0; i < n; ++i)
-            if (!initial_steps_.count(ag[i].id)) {
-                int s = field(grid_.index(ag[i].goal))[grid_.index(ag[i].pos)];
-                initial_steps_[ag[i].id] = s >= 0 ? s : RouteGuide::kRouteUnreachable;
-            }
+            if (!initial_steps_.count(ag[i].id)) initial_steps_[ag[i].id] = route_cost(world.map(), ag[i].pos, ag[i].goal);
         std::vector<int> order;
         priority_order(world, [&](const Agent& a) { return (double)initial_steps_[a.id]; }, order);
-        // Offsets of the reservation disc.
-        std::vector<std::pair<int, int>> disc;
-        int R = (int)std::ceil((2 * r + prm_.buffer) / grid_.cell);
-        for (int dr = -R; dr <= R; ++dr)
-            for (int dc = -R; dc <= R; ++dc)
-                if (std::hypot(dr, dc) * grid_.cell < 2 * r + prm_.buffer) disc.push_back({dr, dc});
+        reserved_.reset(grid.n, grid.cell, 2 * r + prm_.buffer);
         plan_ = Plan{};
         rank_.assign(n, 0);
         plan_.ids.resize(n);
         plan_.waypoints.resize(n);
+        // The first waypoints blend from the robot's position onto the path's cell centres.
+        const double blend = std::max((double)prm_.replan_every, 2 * grid.stretch);
+        std::vector<int> step_cells;
         for (int rank = 0; rank < n; ++rank) {
             int i = order[rank];
-            std::vector<int> path = search(ag[i], T);
-            // Reserve the path's discs; each position from one step before to `hold` after
-            // (tracking lags the plan), marking a cell once per step.
-            std::fill(mark_.begin(), mark_.end(), -1);
-            mark_.resize(N, -1);
-            for (int t = 1; t <= T; ++t)
+            std::vector<int> path = search(world.map(), ag[i], T);
+            // Reserve the path's discs at each step t: its centres from `hold` steps before to
+            // one after (tracking lags the plan), each distinct centre once.
+            for (int t = 1; t <= T; ++t) {
+                step_cells.clear();
                 for (int ts = std::max(1, t - prm_.hold); ts <= std::min(T, t + 1); ++ts) {
-                    int c = path[std::min(ts, (int)path.size() - 1)], row = c / grid_.n, col = c % grid_.n;
-                    for (auto [dr, dc] : disc) {
-                        int r2 = row + dr, c2 = col + dc;
-                        if (r2 < 0 || r2 >= grid_.n || c2 < 0 || c2 >= grid_.n) continue;
-                        int cell = r2 * grid_.n + c2;
-                        if (mark_[cell] == t) continue;
-                        mark_[cell] = t;
-                        uint8_t& slot = reserved_[(size_t)t * N + cell];
-                        if (slot < 255) slot++;
-                    }
+                    const int c = path[std::min(ts, (int)path.size() - 1)];
+                    if (std::find(step_cells.begin(), step_cells.end(), c) == step_cells.end()) step_cells.push_back(c);
                 }
+                for (int c : step_cells) reserved_.add(rank, t, c);
+            }
             // Waypoints: cell centres, the exact goal in the goal cell; on a coarsened grid,
             // points along the path at 1 / stretch cells per world step.
-            int goal_cell = grid_.index(ag[i].goal);
+            int goal_cell = grid.index(ag[i].goal);
             auto point = [&](int step) {
                 int c = path[std::min(step, (int)path.size() - 1)];
-                return c == goal_cell ? ag[i].goal : grid_.centre(c);
+                return c == goal_cell ? ag[i].goal : grid.centre(c);
             };
+            const Vec2 offset = ag[i].pos - point(0);
             std::vector<Vec2> w;
             for (int t = 1; t <= T_world; ++t) {
-                if (grid_.stretch == 1) { w.push_back(point(t)); continue; }
-                const double at = t / grid_.stretch;
-                const int k0 = (int)std::floor(at);
-                const double frac = at - k0;
-                const Vec2 a = point(k0);
-                w.push_back(frac > 0 ? a + (point(k0 + 1) - a) * frac : a);
+                Vec2 at_t;
+                if (grid.stretch == 1) {
+                    at_t = point(t);
+                } else {
+                    const double at = t / grid.stretch;
+                    const int k0 = (int)std::floor(at);
+                    const double frac = at - k0;
+                    const Vec2 a = point(k0);
+                    at_t = frac > 0 ? a + (point(k0 + 1) - a) * frac : a;
+                }
+                w.push_back(at_t + offset * std::max(0.0, 1 - t / blend));
             }
             plan_.ids[i] = ag[i].id;
             plan_.waypoints[i] = std::move(w);
@@ -2657,64 +2897,71 @@ private:
 
     // Space-time A* for one agent against the current reservations; returns cells for
     // t = 0 .. arrival (the agent stays at the last cell afterwards).
-    std::vector<int> search(const Agent& a, int T) {
-        const int n = grid_.n, N = n * n;
-        const int start = grid_.index(a.pos), goal = grid_.index(a.goal);
-        const std::vector<int>& h_bfs = field(goal);
-        auto h = [&](int c) {
-            int cheb = std::max(std::abs(c / n - goal / n), std::abs(c % n - goal % n));
-            return (float)std::max(h_bfs[c], cheb);
-        };
+    std::vector<int> search(const WorldMap& map, const Agent& a, int T) {
+        const ClearanceGrid& grid = guide_.grid();
+        const int n = grid.n;
+        const int start = grid.index(a.pos), goal = grid.index(a.goal);
+        const RouteClearance route = prm_.route();
+        // The heuristic: the wavefront, or the Chebyshev steps when the straight way is open.
+        const std::vector<int>* field = guide_.straight(map, a.pos, a.goal) ? nullptr : &guide_.steps_to(map, a.goal);
+        auto h = [&](int c) { return (float)std::max(field ? (*field)[c] : -1, chebyshev(n, c, goal)); };
         // A start pushed into the clearance band may move through cells no worse than its own.
-        float floor_clear = std::min((float)prm_.inflate, grid_.clear[start]) - 1e-6f;
-        auto allowed = [&](int c) { return grid_.clear[c] >= floor_clear || c == goal; };
+        const float floor_clear = std::min((float)route.min, grid.clear[start]) - 1e-6f;
+        auto allowed = [&](int c) { return grid.clear[c] >= floor_clear || c == goal; };
         // Charge for staying at the goal from step t on while others pass through it.
         std::vector<float> stay(T + 2, 0.f);
-        for (int t = T; t >= 0; --t) stay[t] = stay[t + 1] + (float)prm_.conflict_cost * reserved_[(size_t)t * N + goal];
-        size_t states = (size_t)(T + 1) * N;
-        if (cost_.size() < states) { cost_.resize(states); parent_.resize(states); seen_.assign(states, 0); }
-        if (++generation_ == 0) { std::fill(seen_.begin(), seen_.end(), 0); generation_ = 1; }
+        for (int t = T; t >= 1; --t) {
+            reserved_.near(t, goal, near_);
+            stay[t] = stay[t + 1] + (float)prm_.conflict_cost * reserved_.count(near_, goal);
+        }
+        stay[0] = stay[1];
         struct Node { float f, g; int state; };
         auto worse = [](const Node& x, const Node& y) { return x.f != y.f ? x.f > y.f : x.g < y.g; };
         std::priority_queue<Node, std::vector<Node>, decltype(worse)> open(worse);
-        cost_[start] = 0;
-        parent_[start] = -1;
-        seen_[start] = generation_;
-        open.push({h(start), 0, start});
-        int best_end = -1, closest = start;
+        states_.clear();
+        const int s0 = states_.find_or_add(0, start);
+        states_.nodes[s0].g = 0;
+        open.push({h(start), 0, s0});
+        int best_end = -1, closest = s0;
         float best_total = std::numeric_limits<float>::infinity();
         for (int expansions = 0; !open.empty() && expansions < prm_.max_expansions; ++expansions) {
             Node node = open.top();
             open.pop();
             if (node.f >= best_total) break;
-            if (node.g > cost_[node.state]) continue;
-            int t = node.state / N, c = node.state % N;
+            const detail::SpaceTimeStates::Node st = states_.nodes[node.state];  // a copy: the list grows below
+            if (node.g > st.g) continue;
+            const int t = st.t, c = st.cell;
             if (c == goal) {
                 float total = node.g + stay[t + 1];
                 if (total < best_total) { best_total = total; best_end = node.state; }
             }
-            if (h(c) < h(closest % N) || (h(c) == h(closest % N) && t < closest / N)) closest = node.state;
-            if (t == T) continue;
-            int row = c / n, col = c % n;
+            const detail::SpaceTimeStates::Node& cl = states_.nodes[closest];
+            if (h(c) < h(cl.cell) || (h(c) == h(cl.cell) && t < cl.t)) closest = node.state;
+            if (t == T) {
+                if (best_end < 0) { best_end = node.state; break; }  // the horizon, before any cheaper arrival
+                continue;
+            }
+            reserved_.near(t + 1, c, near_);
+            const int row = c / n, col = c % n;
             for (int dr = -1; dr <= 1; ++dr)
                 for (int dc = -1; dc <= 1; ++dc) {
                     int r2 = row + dr, c2 = col + dc;
                     if (r2 < 0 || r2 >= n || c2 < 0 || c2 >= n) continue;
                     int k2 = r2 * n + c2;
                     if (!allowed(k2)) continue;
-                    size_t s2 = (size_t)(t + 1) * N + k2;
-                    // One step; a hair more for diagonals so straight runs win ties.
-                    float g2 = node.g + 1.f + (dr && dc ? 1e-3f : 0.f) + (float)prm_.conflict_cost * reserved_[s2];
-                    if (seen_[s2] == generation_ && cost_[s2] <= g2) continue;
-                    seen_[s2] = generation_;
-                    cost_[s2] = g2;
-                    parent_[s2] = node.state;
-                    open.push({g2 + h(k2), g2, (int)s2});
+                    // One step (more into a narrow cell); a hair more for diagonals so straight runs win ties.
+                    float g2 = node.g + (float)route.step_cost(grid.clear[k2]) + (dr && dc ? 1e-3f : 0.f) +
+                               (float)prm_.conflict_cost * (near_.empty() ? 0 : reserved_.count(near_, k2));
+                    const int s2 = states_.find_or_add(t + 1, k2);
+                    if (states_.nodes[s2].g <= g2) continue;
+                    states_.nodes[s2].g = g2;
+                    states_.nodes[s2].parent = node.state;
+                    open.push({g2 + h(k2), g2, s2});
                 }
         }
         int end = best_end >= 0 ? best_end : closest;
         std::vector<int> path;
-        for (int s = end; s >= 0; s = parent_[s]) path.push_back(s % N);
+        for (int s = end; s >= 0; s = states_.nodes[s].parent) path.push_back(states_.nodes[s].cell);
         std::reverse(path.begin(), path.end());
         return path;
     }
