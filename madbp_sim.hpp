@@ -18,6 +18,14 @@
 //   MADBP_ASSERT(cond)   programmer-error check; default: assert(cond).
 //
 // Changelog
+//   0.4  Routing at any scale (docs/design.md): ClearanceGrid keeps 0.036 cells up to half-size 41.4
+//        (kRouteMaxGridSide replaces kExpertMaxGridSide = 192) and fills clearance per obstacle
+//        (exact below kClearanceReach); RouteClearance: passable from 0.102, narrow below 0.13 costs
+//        8 extra steps (was a hard 0.13); wavefront(grid, goal, RouteClearance); RouteGuide caches
+//        fields within kFieldCacheBytes (LRU; kMaxFields is gone), needs none where the straight way
+//        is clear (straight(), steps_to(), workspace_bytes()); GuidedExpert plans on a RouteGuide
+//        (ExpertParams::min_clear, narrow_cost) with a sparse space-time A* and bucketed
+//        reservations, and its plans start from the robot's position.
 //   0.3  PassageControl and its parameters move to madbp.hpp (the planner's traffic conventions).
 //        ClearanceGrid moves to Section 2; ReachGrid is gone (detail::all_reachable on its layout).
 //        movingai_scene / load_movingai_scene: MovingAI MAPF benchmark maps and scenarios as scenes.
@@ -154,7 +162,7 @@ inline std::string number_text(double v) {
 //
 // Contents (section numbers below; SPEC sections in brackets)
 //   1 geometry: Vec2, Disc, Box, WorldMap, for_each_surface, static_clearance
-//   2 maps: make_map("empty" | "obstacles" | "barrier"), ClearanceGrid (the map's cells) [2]
+//   2 maps: make_map("empty" | "obstacles" | "barrier"), ClearanceGrid (the routing cells) [2]
 //   3 the world: WorldConfig, Agent, Metrics, World (add/remove agents, step)    [2]
 //   4 spawning: default_half_size, spawn_agents, make_random_world, WorldBatch   [2]
 //   4b interaction scenes: interaction_scenarios, make_interaction_world      (issue 12)
@@ -167,7 +175,7 @@ inline std::string number_text(double v) {
 //   9 tracker and safety filter: track_waypoint, track_plan, safety_filter       [3.2]
 //  10 plans: Plan, Planner, validate_plan, waypoint_now, LinePlanner, PlanFollower [3.2, 3.5, 8]
 //  11 episodes and evaluation: EpisodeLog, run_episode, default_max_steps, evaluate [9, 10]
-//  12 guided expert: wavefront, ClosedCells, RouteGoal, RouteGuide (route subgoals),
+//  12 guided expert: ClosedCells, RouteClearance, wavefront, RouteGoal, RouteGuide (route subgoals),
 //     ExpertParams, GuidedExpert (one-lane passages: the planner's, madbp.hpp),
 //     scene_step_limit (a scene's default step limit follows its routes)     [3.6]
 //  13 SVG: render_svg, write_text_file                                           [2]
@@ -2974,8 +2982,8 @@ private:
 // kStepLimitGridSide a side: a larger world gets coarser cells) through the cell centres a robot
 // of `radius` fits at, one cell per move in 8 directions: at cruise a robot covers
 // ExpertParams::cell (0.036) per step along each axis, so a move takes cell / 0.036 steps. Its
-// own grid, not the expert's: a 0.3-wide aisle leaves a 0.1-wide band for a robot's centre, which
-// 0.05 cells always sample but the expert's (clearance 0.13, cells up to 2 h / 192) may miss. A
+// own grid, coarser than the routing grid's and with a plain fit at the robot's radius: a
+// 0.3-wide aisle leaves a 0.1-wide band for a robot's centre, which 0.05 cells always sample. A
 // robot with no route on the grid counts its straight (Chebyshev) distance. Memory: 12 bytes a
 // cell (12 MiB at most); time: one wavefront per robot.
 constexpr double kStepLimitCell = 0.05;

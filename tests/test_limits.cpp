@@ -28,14 +28,14 @@ using madbp_cli::Args;
 
 TEST_CASE("limits: eval --method expert --half-size 100: the expert's grid is bounded at any world size") {
     // Before: a 5556 x 5556 grid and 121 steps of reservations, 21 GB. Now at most
-    // kExpertMaxGridSide cells a side, coarser cells beyond half-size ~3.45.
+    // kRouteMaxGridSide cells a side (coarser cells beyond half-size ~41.4) and a sparse search.
     const std::string r = capped(512, [] {
         World w = make_random_world("empty", 4, 0, 100.0);
         GuidedExpert expert(w.map());
         for (int t = 0; t < 20; ++t) w.step(expert.act(w));
         return std::to_string(expert.grid().n);
     });
-    CHECK(r == "ok: " + std::to_string(kExpertMaxGridSide));
+    CHECK(r == "ok: " + std::to_string(kRouteMaxGridSide));
     // A step limit of 10^6 plans at most kExpertMaxHorizon steps ahead (was 10^6 x 133^2 states).
     const std::string r2 = capped(512, [] {
         WorldConfig wc;
@@ -46,18 +46,23 @@ TEST_CASE("limits: eval --method expert --half-size 100: the expert's grid is bo
         return std::string();
     });
     CHECK(r2 == "ok");
-    // Up to half-size 3.4 the grid is as before (cells of ~0.036, not coarsened) ...
+    // Up to half-size 41.4 the cells are the expert's 0.036 (189 a side at 3.4, 333 at 6) ...
     Rng rng(0);
     const ClearanceGrid at34(make_map("empty", rng, 3.4), ExpertParams{}.cell);
     CHECK(at34.n == 189);
     CHECK(at34.stretch == 1);
-    // ... and beyond it the coarsened expert still solves a problem (half-size 6, 1.7x cells).
+    const ClearanceGrid at6(make_map("empty", rng, 6.0), ExpertParams{}.cell);
+    CHECK(at6.n == 333);
+    CHECK(at6.stretch == 1);
+    // ... and beyond it the coarsened expert still solves a problem (half-size 50, 1.2x cells).
     WorldConfig wc;
     wc.max_steps = 300;
-    World w = make_random_world("empty", 2, 1, 6.0, wc);
+    World w(WorldMap{50, {}, {}}, wc);
+    w.add_agent({1.01, 2.02}, {-0.5, 1.1});
+    w.add_agent({-0.4, 2.5}, {1.2, 1.3});
     GuidedExpert expert(w.map());
-    CHECK(expert.grid().n == kExpertMaxGridSide);
-    CHECK(expert.grid().stretch > 1.5);
+    CHECK(expert.grid().n == kRouteMaxGridSide);
+    CHECK(expert.grid().stretch > 1.15);
     EpisodeResult res = run_episode(w, expert);
     CHECK(res.success);
     CHECK(res.collisions() == 0);
@@ -299,7 +304,7 @@ TEST_CASE("limits: world 1e9 in a scene is refused; grids and pictures stay boun
     CHECK_THROWS_WITH_AS(make_map("obstacles", rng, 60), doctest::Contains("kMaxObstacles"), std::invalid_argument);
     // The expert's grid no longer wraps to 2 x 2 on a huge map handed to it directly.
     const ClearanceGrid g(huge, ExpertParams{}.cell);
-    CHECK(g.n == kExpertMaxGridSide);
+    CHECK(g.n == kRouteMaxGridSide);
     // Scene counts are bounded.
     std::string many = "madbp-scene 1\nworld 50\n";
     for (int i = 0; i <= kMaxObstacles; ++i) many += "disc 0 0 0.01\n";

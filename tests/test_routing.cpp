@@ -1,0 +1,183 @@
+// Routing at any scale (issue 46 item 1; docs/design.md, "Routing at any scale"): the routing
+// grid (ClearanceGrid, wavefront, RouteGuide, GuidedExpert; madbp_sim.hpp Sections 2 and 12)
+// finds every passage at least 0.25 wide wherever it falls in worlds of half-size 2-40, the
+// expert crosses large worlds, and its workspace stays within the bounds of docs/limits.md.
+#include <doctest/doctest.h>
+
+#include "madbp_sim.hpp"
+
+using namespace madbp;
+
+namespace {
+
+// A wall of thickness `width` across the world at y = y0 with one gap of `width` centred at x0
+// (a one-cell aisle of a map converted at `width` per cell).
+WorldMap aisle_map(double half, double width, double x0, double y0) {
+    WorldMap m;
+    m.half_size = half;
+    const double w = 0.5 * width;
+    m.boxes.push_back({{-half, y0 - w}, {x0 - w, y0 + w}});
+    m.boxes.push_back({{x0 + w, y0 - w}, {half, y0 + w}});
+    return m;
+}
+
+// Shelves of a warehouse at half-size `half`: rows of boxes 0.3 deep, 0.6 apart, split by a
+// cross aisle at x = 0; robots stand in the aisles.
+WorldMap warehouse_map(double half) {
+    WorldMap m;
+    m.half_size = half;
+    for (double y = -half + 1; y + 0.3 < half - 1; y += 0.9) {
+        m.boxes.push_back({{-half + 1, y}, {-1, y + 0.3}});
+        m.boxes.push_back({{1, y}, {half - 1, y + 0.3}});
+    }
+    return m;
+}
+Vec2 aisle_point(double half, Rng& rng) {
+    const int rows = (int)((2 * half - 2.3) / 0.9);
+    const double y = -half + 1 + 0.3 + 0.3 + 0.9 * rng.uniform_int(rows - 1);  // an aisle's centre line
+    const double x = (rng.uniform() < 0.5 ? -1 : 1) * rng.uniform(2, half - 2);
+    return {x, y};
+}
+
+}  // namespace
+
+TEST_CASE("routing: a one-cell aisle 0.25-0.4 wide is routable in worlds of half-size 2-40, wherever it falls") {
+    Rng rng(46);
+    for (int config = 0; config < 20; ++config) {
+        const double half = rng.uniform(2, 40), width = rng.uniform(0.25, 0.4);
+        const double x0 = rng.uniform(-0.5, 0.5) * (half - 2), y0 = rng.uniform(-0.5, 0.5) * (half - 2);
+        const WorldMap map = aisle_map(half, width, x0, y0);
+        const Vec2 start{x0 - 0.8, y0 - 1.2}, goal{x0 + 0.8, y0 + 1.2};  // the straight way is blocked
+        CAPTURE(config);
+        CAPTURE(half);
+        CAPTURE(width);
+        CAPTURE(x0);
+        CAPTURE(y0);
+        // The route guide: a route exists, and its cells cross the wall inside the gap.
+        RouteGuide guide;
+        REQUIRE(guide.route_steps(map, start, goal) < RouteGuide::kRouteUnreachable);
+        std::vector<int> cells;
+        guide.route_cells(map, start, goal, 1 << 20, cells);
+        REQUIRE(!cells.empty());
+        CHECK(cells.back() == guide.grid().index(goal));
+        bool through_gap = false;
+        for (int k : cells) {
+            const Vec2 c = guide.grid().centre(k);
+            if (std::abs(c.y - y0) < 0.5 * width) through_gap = std::abs(c.x - x0) < 0.5 * width;
+            CHECK(static_clearance(map, c) >= 0.1);  // every route cell keeps the robot off the map
+        }
+        CHECK(through_gap);
+        // The subgoal walk leads toward the gap, not straight at the goal through the wall.
+        const RouteGoal sub = guide.subgoal(map, start, goal, 0.6);
+        CHECK_FALSE(sub.final);
+        CHECK(norm(sub.goal - Vec2{x0, y0}) < norm(start - Vec2{x0, y0}));
+        // The guided expert's planning grid: the same cells and its own wavefront reach through.
+        const ExpertParams ep;
+        const GuidedExpert expert(map, ep);
+        CHECK(expert.grid().n == guide.grid().n);
+        CHECK(expert.grid().cell == doctest::Approx(guide.grid().cell));
+        const std::vector<int> steps = wavefront(expert.grid(), expert.grid().index(goal), ep.route());
+        CHECK(steps[expert.grid().index(start)] >= 0);
+    }
+}
+
+TEST_CASE("routing: a gap narrower than a robot is no route, and the soft clearance keeps wide ways first") {
+    // 0.2 wide: no centre fits (control for the test above).
+    const WorldMap narrow = aisle_map(6, 0.2, 0.3, 0.1);
+    RouteGuide guide;
+    CHECK(guide.route_steps(narrow, {-0.5, -1}, {1.1, 1.2}) == RouteGuide::kRouteUnreachable);
+    // A 0.25 gap (its centre keeps 0.125 < the preferred 0.13) beside a 1.0 gap 0.8 away: the
+    // route takes the wide one (the narrow one costs narrow_cost extra per cell), unless
+    // narrow_cost is 0.
+    WorldMap two;
+    two.half_size = 3;
+    two.boxes = {{{-3, -0.15}, {-0.125, 0.15}}, {{0.125, -0.15}, {0.8, 0.15}}, {{1.8, -0.15}, {3, 0.15}}};
+    auto crossing_x = [&](RouteGuide& g) {
+        std::vector<int> cells;
+        g.route_cells(two, {0, -1}, {0, 1}, 1 << 20, cells);
+        for (int k : cells)
+            if (std::abs(g.grid().centre(k).y) < 0.05) return g.grid().centre(k).x;
+        return -100.0;
+    };
+    RouteGuide soft;
+    CHECK(crossing_x(soft) > 0.8);
+    RouteGuide hard_free;
+    hard_free.narrow_cost = 0;
+    CHECK(std::abs(crossing_x(hard_free)) < 0.15);
+    // Bad settings are refused naming the field.
+    RouteGuide bad;
+    bad.narrow_cost = -1;
+    CHECK_THROWS_WITH_AS(bad.grid(two), doctest::Contains("RouteGuide.narrow_cost"), std::invalid_argument);
+    ExpertParams ep;
+    ep.min_clear = 0.2;  // above inflate
+    CHECK_THROWS_WITH_AS(GuidedExpert(two, ep), doctest::Contains("ExpertParams.min_clear"), std::invalid_argument);
+}
+
+TEST_CASE("routing: the expert crosses large empty worlds and reaches a near goal in a huge one") {
+    {  // Two robots crossing paths over 28 units in half-size 28.8.
+        WorldConfig wc;
+        wc.max_steps = 1800;
+        World w(WorldMap{28.8, {}, {}}, wc);
+        w.add_agent({-10, -10}, {10, 10});
+        w.add_agent({10, -10}, {-10, 10});
+        GuidedExpert expert(w.map());
+        const EpisodeResult r = run_episode(w, expert);
+        CHECK(r.success);
+        CHECK(r.collisions() == 0);
+        CHECK(r.steps < 1200);  // about 790 steps at cruise
+    }
+    {  // One robot 1.4 from its goal in half-size 34.
+        WorldConfig wc;
+        wc.max_steps = 200;
+        World w(WorldMap{34, {}, {}}, wc);
+        w.add_agent({3.013, -2.021}, {3.013 + 0.99, -2.021 + 0.99});
+        GuidedExpert expert(w.map());
+        const EpisodeResult r = run_episode(w, expert);
+        CHECK(r.success);
+        CHECK(r.steps < 100);
+    }
+    {  // Through a 0.3 aisle off the grid's lines in half-size 20.
+        WorldConfig wc;
+        wc.max_steps = 500;
+        World w(aisle_map(20, 0.3, 3.317, -5.123), wc);
+        w.add_agent({3.317 - 1.5, -5.123 - 1.5}, {3.317 + 1.5, -5.123 + 1.5});
+        GuidedExpert expert(w.map());
+        const EpisodeResult r = run_episode(w, expert);
+        CHECK(r.success);
+        CHECK(r.collisions() == 0);
+    }
+}
+
+TEST_CASE("routing: the expert's and the route guide's workspace stay within their bounds at half-size 25") {
+    const double half = 25;
+    const WorldMap map = warehouse_map(half);
+    Rng rng(7);
+    WorldConfig wc;
+    wc.max_steps = 2000;
+    World w(map, wc);
+    for (int i = 0; i < 16; ++i) w.add_agent(aisle_point(half, rng), aisle_point(half, rng));
+    GuidedExpert expert(w.map());
+    for (int t = 0; t < 12; ++t) w.step(expert.act(w));
+    const ClearanceGrid& g = expert.grid();
+    CHECK(g.n == 1389);  // cells of 0.036 at half-size 25 (no coarsening)
+    const size_t grid_bytes = (size_t)g.n * g.n * sizeof(float), field_bytes = (size_t)g.n * g.n * sizeof(int);
+    const ExpertParams ep;
+    const size_t states = 8 * (size_t)ep.max_expansions + 1;
+    const size_t search_bound = 48 * states;  // nodes (16 bytes, capacity <= 2x) + table (4 bytes, <= 4x)
+    CHECK(expert.guide().workspace_bytes() <= grid_bytes + RouteGuide::kFieldCacheBytes);
+    CHECK(expert.workspace_bytes() <= grid_bytes + RouteGuide::kFieldCacheBytes + search_bound + (16u << 20));
+    // The dense space-time arrays of before 0.4 held (T + 1) x cells bytes of reservations alone.
+    const size_t dense = (size_t)(kExpertMaxHorizon + ep.extra_horizon + 1) * g.n * g.n;
+    CHECK(expert.workspace_bytes() < dense / 2);
+    // A route guide asked for more goals than its cache holds drops the least recently used.
+    RouteGuide guide;
+    const size_t holds = RouteGuide::kFieldCacheBytes / field_bytes;
+    Rng rng2(8);
+    for (size_t i = 0; i < holds + 4; ++i) {
+        const Vec2 p = aisle_point(half, rng2), goal{-p.x, p.y + 0.9 * (p.y < 0 ? 3 : -3)};
+        guide.subgoal(map, p, goal, 0.8);
+    }
+    CHECK(guide.fields_cached() <= holds);
+    CHECK(guide.fields_cached() >= holds - 1);
+    CHECK(guide.workspace_bytes() <= grid_bytes + RouteGuide::kFieldCacheBytes);
+}
