@@ -1975,7 +1975,7 @@ inline void encode_map(SceneBatch& batch, int scene, const WorldMap& map, const 
 constexpr double kRouteLookahead = 0.8;
 inline RouteGoal route_goal(RouteGuide& guide, const ModelConfig& c, const WorldMap& map, Vec2 pos, Vec2 goal,
                             ClosedCells closed = {}) {
-    const double D = c.subgoal_distance > 0 ? c.subgoal_distance : closed.label ? kRouteLookahead : 0;
+    const double D = c.subgoal_distance > 0 ? c.subgoal_distance : closed.any() ? kRouteLookahead : 0;
     if (D <= 0 || (norm(goal - pos) <= D && guide.in_view(map, pos, goal, closed))) return {goal, true};
     const RouteGoal next = guide.subgoal(map, pos, goal, std::min(D, kRouteLookahead), closed);
     const Vec2 d = next.goal - pos;
@@ -3660,7 +3660,7 @@ inline void PlannerConfig::set(const std::string& name, const std::string& text)
 //     would wait outside it goes around instead (go_around): its route keeps out of the passage
 //     (closed_to, ClosedCells) while the holders are in it, and robots going around the same
 //     passage take its two sides in turn (spread; closed_to then also closes the other side).
-// Memory: a few grids, plus two per avoidable passage (its sides).
+// Memory: a few grids, plus two cell lists per avoidable passage (its sides).
 // Claims are made afresh at every call from positions, goals and ids alone, so robots that plan
 // for themselves with the same information reach the same decision.
 class PassageControl {
@@ -3803,7 +3803,7 @@ private:
     std::vector<Mouth> mouths_;
     std::vector<char> avoidable_;    // per passage: it has a way around within `bypass`
     std::vector<uint64_t> closed_key_;  // per passage: ClosedCells::key of its cells
-    std::vector<std::vector<int>> side_closed_;  // per avoidable passage p and side s, [2p + s]: 1 where a robot going around on s keeps out
+    std::vector<std::vector<int>> side_closed_;  // per avoidable passage p and side s, [2p + s]: the cells a robot going around on s keeps out of, sorted
     std::vector<Claim> claims_;
 
     // Where the robot waits that is `distance` out from mouth m: right of the way in, left, or on it,
@@ -3822,7 +3822,7 @@ private:
 
     // The cells a robot going around avoidable passage p on side s keeps out of (close_side).
     ClosedCells side_cells(int p, int s) const {
-        return {&side_closed_[2 * p + s], 1, closed_key_[p] ^ (0x9E3779B97F4A7C15ull * (uint64_t)(s + 1))};
+        return {nullptr, -1, closed_key_[p] ^ (0x9E3779B97F4A7C15ull * (uint64_t)(s + 1)), &side_closed_[2 * p + s]};
     }
     // Whether claim a comes before b on their passage: the nearer (fewer route cells before
     // it), then the one with less of it ahead, then the lower id (robots without one, no ids or
@@ -3859,13 +3859,13 @@ private:
         }
     }
     // The cells a robot going around the passage of `cells` (mouths a, b) on side `side` keeps
-    // out of (closed[k] = 1): the passage, and a band 3 cells wide from its middle across the
-    // other side, through the wall there and the free space beyond, to the next obstacle or the
-    // border. That side's way around crosses the band, so the robot's way takes side `side`.
+    // out of (listed, sorted, in `closed`): the passage, and a band 3 cells wide from its middle
+    // across the other side, through the wall there and the free space beyond, to the next
+    // obstacle or the border. That side's way around crosses the band, so the robot's way takes
+    // side `side`.
     void close_side(const ClearanceGrid& grid, const std::vector<int>& cells, const Mouth& a, const Mouth& b, int side, std::vector<int>& closed) const {
         const int n = grid.n;
-        closed.assign((size_t)n * n, 0);
-        for (int c : cells) closed[c] = 1;
+        closed.assign(cells.begin(), cells.end());  // a list, not a grid: fine grids have many passages
         const Vec2 middle = (a.at + b.at) * 0.5, u = normalized(b.at - a.at);
         const Vec2 across = side == 0 ? Vec2{u.y, -u.x} : Vec2{-u.y, u.x};  // side 0 passes left of a -> b: close the right
         int start = cells[0];
@@ -3880,9 +3880,11 @@ private:
             if (phase == 0 && blocked) phase = 1;
             if (phase == 1 && !blocked) phase = 2;
             if (phase == 2 && blocked) break;
-            closed[k] = 1;
-            detail::for_each_neighbour(n, k, [&](int k2) { closed[k2] = 1; });
+            closed.push_back(k);
+            detail::for_each_neighbour(n, k, [&](int k2) { closed.push_back(k2); });
         }
+        std::sort(closed.begin(), closed.end());
+        closed.erase(std::unique(closed.begin(), closed.end()), closed.end());
     }
     // 8-connected flood from `seed` over the cells k with open(k) (not yet labelled): labels them
     // `id` and appends them to out.

@@ -2343,13 +2343,19 @@ inline int nearest_surface(const WorldMap& map, Vec2 p) {
 
 
 // Cells of a grid a route keeps out of: those k with (*label)[k] == id (a PassageControl
-// passage: its passage() labels and index). `key` names the set in a RouteGuide's wavefront
-// cache: the same key must mean the same cells on the same map. Default: none closed.
+// passage: its passage() labels and index), and those listed in `cells` (sorted; a sparse set,
+// such as the side of a passage a robot going around keeps out of, whose memory follows its
+// cells, not the grid). `key` names the set in a RouteGuide's wavefront cache: the same key must
+// mean the same cells on the same map. Default: none closed.
 struct ClosedCells {
     const std::vector<int>* label = nullptr;
     int id = -1;
     uint64_t key = 0;
-    bool closes(int k) const { return label && (*label)[k] == id; }
+    const std::vector<int>* cells = nullptr;
+    bool any() const { return label || cells; }
+    bool closes(int k) const {
+        return (label && (*label)[k] == id) || (cells && std::binary_search(cells->begin(), cells->end(), k));
+    }
 };
 
 // Which cells a route may use and which it would rather not (RouteGuide and GuidedExpert share
@@ -2408,8 +2414,8 @@ inline std::vector<int> wavefront(const ClearanceGrid& cg, int goal_cell, double
 }
 
 // Route subgoals (issue 13): where a robot should head next on its shortest way around the
-// static map to a goal that may be far away. When the straight segment to the goal keeps the
-// preferred clearance on the grid (straight()), that is the way and no field is made. Otherwise
+// static map to a goal that may be far away. When the goal is in straight view (below), that is
+// the way and no field is made. Otherwise
 // the wavefront of the goal's cell (made once per map, goal cell and closed set, and cached) is
 // walked downhill from the robot's cell; the subgoal is the last cell centre of that walk that
 // is still in straight view of the robot's position (the segment keeps `view_clear` from the
@@ -2439,8 +2445,7 @@ public:
         if (!(distance > 0) || !std::isfinite(distance)) throw std::invalid_argument("RouteGuide: distance must be a positive number");
         set_map(map);
         check(closed);
-        if (norm(goal - p) <= distance && visible(p, goal, closed)) return {goal, true};
-        if (straight_way(p, goal, closed)) {  // no field needed: `distance` along the segment
+        if (visible(p, goal, closed)) {  // no field needed: the goal, or `distance` along the segment to it
             const Vec2 d = goal - p;
             return norm(d) <= distance ? RouteGoal{goal, true} : RouteGoal{p + d * (distance / norm(d)), false};
         }
@@ -2537,7 +2542,7 @@ private:
         field_bytes_ = 0;
     }
     const std::vector<int>& field(int goal_cell, ClosedCells closed = {}) {
-        const std::pair<int, uint64_t> key{goal_cell, closed.label ? closed.key : 0};
+        const std::pair<int, uint64_t> key{goal_cell, closed.any() ? closed.key : 0};
         auto it = fields_.find(key);
         if (it == fields_.end()) {
             const size_t bytes = (size_t)grid_.n * grid_.n * sizeof(int);
@@ -2557,12 +2562,21 @@ private:
         if (closed.label && closed.label->size() != (size_t)grid_.n * grid_.n)
             throw std::invalid_argument("ClosedCells.label: needs one entry per cell of the guide's grid (" + std::to_string(grid_.n * grid_.n) +
                                         "), got " + std::to_string(closed.label->size()));
+        if (closed.cells && !closed.cells->empty() && (closed.cells->front() < 0 || closed.cells->back() >= grid_.n * grid_.n))
+            throw std::invalid_argument("ClosedCells.cells: a cell is outside the guide's grid (" + std::to_string(grid_.n * grid_.n) + " cells)");
     }
+    // Exact (every sample's distance to the map, so the same wherever the grid's lines fall), but
+    // a sample whose cell keeps view_clear + half a cell diagonal needs none: clearance changes
+    // no faster than position, so long views over open ground cost grid reads only.
     bool visible(Vec2 a, Vec2 b, ClosedCells closed = {}) const {
         const int samples = 1 + (int)std::ceil(norm(b - a) / (0.5 * grid_.cell));
+        const double sure = view_clear + 0.71 * grid_.cell;
         for (int i = 0; i <= samples; ++i) {
             const Vec2 q = a + (b - a) * ((double)i / samples);
-            if (static_clearance(map_, q) < view_clear || closed.closes(grid_.index(q))) return false;
+            const int k = grid_.index(q);
+            if (closed.closes(k)) return false;
+            const bool inside = std::abs(q.x) < grid_.half && std::abs(q.y) < grid_.half;
+            if (!(inside && grid_.clear[k] >= sure) && static_clearance(map_, q) < view_clear) return false;
         }
         return true;
     }
