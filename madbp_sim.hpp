@@ -2414,8 +2414,9 @@ inline std::vector<int> wavefront(const ClearanceGrid& cg, int goal_cell, double
 }
 
 // Route subgoals (issue 13): where a robot should head next on its shortest way around the
-// static map to a goal that may be far away. When the goal is in straight view (below), that is
-// the way and no field is made. Otherwise
+// static map to a goal that may be far away. When the segment to the goal keeps the preferred
+// clearance `clear` (an exact test, like the view's below), that is the way: the subgoal lies
+// `distance` along it and no field is made. Otherwise
 // the wavefront of the goal's cell (made once per map, goal cell and closed set, and cached) is
 // walked downhill from the robot's cell; the subgoal is the last cell centre of that walk that
 // is still in straight view of the robot's position (the segment keeps `view_clear` from the
@@ -2445,10 +2446,8 @@ public:
         if (!(distance > 0) || !std::isfinite(distance)) throw std::invalid_argument("RouteGuide: distance must be a positive number");
         set_map(map);
         check(closed);
-        if (visible(p, goal, closed)) {  // no field needed: the goal, or `distance` along the segment to it
-            const Vec2 d = goal - p;
-            return norm(d) <= distance ? RouteGoal{goal, true} : RouteGoal{p + d * (distance / norm(d)), false};
-        }
+        if (norm(goal - p) <= distance && visible(p, goal, closed)) return {goal, true};
+        if (visible(p, goal, closed, clear)) return {p + (goal - p) * (distance / norm(goal - p)), false};  // no field needed
         const std::vector<int>& steps = field(grid_.index(goal), closed);
         int k = start_cell(steps, grid_.index(p));
         if (k < 0) return {goal, true};  // no route known from here: head straight for the goal
@@ -2568,15 +2567,17 @@ private:
     // Exact (every sample's distance to the map, so the same wherever the grid's lines fall), but
     // a sample whose cell keeps view_clear + half a cell diagonal needs none: clearance changes
     // no faster than position, so long views over open ground cost grid reads only.
-    bool visible(Vec2 a, Vec2 b, ClosedCells closed = {}) const {
+    // `clearance`: view_clear, or the route's preferred clearance for the straight way.
+    bool visible(Vec2 a, Vec2 b, ClosedCells closed = {}, double clearance = -1) const {
+        if (clearance < 0) clearance = view_clear;
         const int samples = 1 + (int)std::ceil(norm(b - a) / (0.5 * grid_.cell));
-        const double sure = view_clear + 0.71 * grid_.cell;
+        const double sure = clearance + 0.71 * grid_.cell;
         for (int i = 0; i <= samples; ++i) {
             const Vec2 q = a + (b - a) * ((double)i / samples);
             const int k = grid_.index(q);
             if (closed.closes(k)) return false;
             const bool inside = std::abs(q.x) < grid_.half && std::abs(q.y) < grid_.half;
-            if (!(inside && grid_.clear[k] >= sure) && static_clearance(map_, q) < view_clear) return false;
+            if (!(inside && grid_.clear[k] >= sure) && static_clearance(map_, q) < clearance) return false;
         }
         return true;
     }
