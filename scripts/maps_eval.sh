@@ -9,14 +9,22 @@
 # files in order (<map>-random-1.scen, -random-2, ...; <map>-even-K.scen when there are no random
 # ones), never splitting a block of n rows over two files; when the files hold fewer than s+1 blocks
 # the blocks are reused (with a warning), so the seeds are then no longer distinct problems.
+# A map without scenario files (a generated <family>-gen map, or a real map whose .scen files are
+# not here) gets n rows drawn from seed s (`madbp convert --random-scen --seed s`): start and goal
+# in one component, distinct starts, distinct goals; each seed is its own problem.
 #
-# Settings (environment): MAPS, CELLS, AGENTS (lists), SEEDS="first last", METHODS, MADBP (the
-# tool), JOBS (episodes in parallel, xargs -P), OUT (episode TSV), MAP_DIR (the .map files),
-# SCEN_DIR (the .scen files; default MAP_DIR), EVAL_FLAGS (more `madbp eval` flags, all methods).
+# Settings (environment): MAPS (default: every <map>.map in MAP_DIR, real or -gen), CELLS, AGENTS
+# (lists), SEEDS="first last", METHODS, MADBP (the tool), JOBS (episodes in parallel, xargs -P),
+# OUT (episode TSV), MAP_DIR (the .map files), SCEN_DIR (the .scen files; default MAP_DIR),
+# EVAL_FLAGS (more `madbp eval` flags, all methods).
 # `scripts/maps_eval.sh --summary [FILE]` prints the summary of an existing TSV.
 set -euo pipefail
 
-MAPS=${MAPS:-"empty-32-32 random-64-64-10 room-64-64-8 maze-32-32-4 warehouse-10-20-10-2-2 lak303d ht_chantry"}
+MAP_DIR=${MAP_DIR:-maps/movingai}
+if [[ -z ${MAPS:-} ]]; then
+  MAPS=$(for f in "$MAP_DIR"/*.map; do [[ -f $f ]] && basename "$f" .map; done | sort | tr '\n' ' ')
+  [[ -n $MAPS ]] || { echo "maps_eval: no .map files in $MAP_DIR" >&2; exit 2; }
+fi
 CELLS=${CELLS:-"0.3 0.25"}
 AGENTS=${AGENTS:-"4 8 16 32"}
 SEEDS=${SEEDS:-"0 99"}
@@ -24,7 +32,6 @@ METHODS=${METHODS:-"madbp expert line"}
 MADBP=${MADBP:-build/madbp}
 JOBS=${JOBS:-1}
 OUT=${OUT:-results/maps/episodes.tsv}
-MAP_DIR=${MAP_DIR:-maps/movingai}
 SCEN_DIR=${SCEN_DIR:-$MAP_DIR}
 EVAL_FLAGS=${EVAL_FLAGS:-}
 
@@ -71,14 +78,44 @@ scen_files() {
   echo "$files"
 }
 
+# One scene (map cell n seed, then the convert flags that pick its rows) and its episode jobs, one
+# line of $WORK/jobs per method; a failed convert writes a convert-error row per method instead.
+convert_scene() {
+  local map=$1 cell=$2 n=$3 s=$4 scene method
+  shift 4
+  scene=$WORK/scenes/$map-c$cell-n$n-s$s.scene
+  if ! "$MADBP" convert --movingai "$MAP_DIR/$map.map" "$@" --agents "$n" --cell "$cell" \
+       --out "$scene" > /dev/null 2> "$scene.err"; then
+    echo "maps_eval: convert failed: $map cell $cell n $n seed $s: $(tail -n 1 "$scene.err")" >&2
+    for method in $METHODS; do
+      printf '%s\t%s\t%s\t%s\t%s\tconvert-error\t\t\t\n' "$map" "$cell" "$n" "$s" "$method" \
+        > "$WORK/rows/$map-c$cell-n$n-s$s-$method.tsv"
+    done
+    return 0
+  fi
+  for method in $METHODS; do
+    echo "$map $cell $n $s $method $scene" >> "$WORK/jobs"
+  done
+}
+
 # 1. Scenes (serial: a convert takes milliseconds). Each episode job is one line of $WORK/jobs.
 : > "$WORK/jobs"
 for map in $MAPS; do
   mapfile=$MAP_DIR/$map.map
   [[ -f $mapfile ]] || { echo "maps_eval: no map file $mapfile" >&2; exit 2; }
   scens=$(scen_files "$map")
-  [[ -n $scens ]] || { echo "maps_eval: no scenario files $SCEN_DIR/$map-random-*.scen or -even-*.scen" >&2; exit 2; }
+  if [[ -z $scens ]]; then
+    echo "maps_eval: $map: no scenario files $SCEN_DIR/$map-random-*.scen or -even-*.scen; rows drawn per seed (--random-scen)" >&2
+  fi
   for n in $AGENTS; do
+    if [[ -z $scens ]]; then  # rows drawn from the episode's seed
+      for cell in $CELLS; do
+        for (( s = SEED_FIRST; s <= SEED_LAST; s++ )); do
+          convert_scene "$map" "$cell" "$n" "$s" --random-scen --seed "$s"
+        done
+      done
+      continue
+    fi
     # Blocks of n rows per file, in file order.
     files=(); blocks=(); total=0
     for f in $scens; do
@@ -91,19 +128,7 @@ for map in $MAPS; do
       for (( s = SEED_FIRST; s <= SEED_LAST; s++ )); do
         b=$(( s % total )); i=0
         while (( b >= blocks[i] )); do b=$(( b - blocks[i] )); i=$(( i + 1 )); done
-        scene=$WORK/scenes/$map-c$cell-n$n-s$s.scene
-        if ! "$MADBP" convert --movingai "$mapfile" --scen "${files[i]}" --agents "$n" --cell "$cell" \
-             --offset $(( b * n )) --out "$scene" > /dev/null 2> "$scene.err"; then
-          echo "maps_eval: convert failed: $map cell $cell n $n seed $s: $(tail -n 1 "$scene.err")" >&2
-          for method in $METHODS; do
-            printf '%s\t%s\t%s\t%s\t%s\tconvert-error\t\t\t\n' "$map" "$cell" "$n" "$s" "$method" \
-              > "$WORK/rows/$map-c$cell-n$n-s$s-$method.tsv"
-          done
-          continue
-        fi
-        for method in $METHODS; do
-          echo "$map $cell $n $s $method $scene" >> "$WORK/jobs"
-        done
+        convert_scene "$map" "$cell" "$n" "$s" --scen "${files[i]}" --offset $(( b * n ))
       done
     done
   done
