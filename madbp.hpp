@@ -210,10 +210,16 @@ inline int threads_for(double flops) {
 
 // Runs fn(i, thread) for i in [0, n) on `threads` threads; thread in [0, threads) indexes
 // per-thread scratch. One thread runs a plain loop: even a one-thread OpenMP region allocates
-// its team in libgomp.
+// its team in libgomp. `dynamic`: each thread takes the next i when done (items of uneven cost,
+// or a thread slowed by another job); fn's results must then not depend on which thread runs i.
 template <class F>
-inline void parallel_for(int n, int threads, const F& fn) {
+inline void parallel_for(int n, int threads, const F& fn, bool dynamic = false) {
 #ifdef _OPENMP
+    if (threads > 1 && dynamic) {
+#pragma omp parallel for num_threads(threads) schedule(dynamic, 1)
+        for (int i = 0; i < n; ++i) fn(i, omp_get_thread_num());
+        return;
+    }
     if (threads > 1) {
 #pragma omp parallel for num_threads(threads) schedule(static)
         for (int i = 0; i < n; ++i) fn(i, omp_get_thread_num());
@@ -3438,7 +3444,7 @@ struct PlannerConfig {
     // The chunk size, not the thread count, fixes the arithmetic: plans are the same on any
     // number of threads.
     struct Workspace {
-        int chunk_scenes = 8;
+        int chunk_scenes = 4;  // smaller chunks were as fast or faster on one core (docs/speed.md)
         double max_mb = 1024;  // a plan whose workspace (planner_workspace_bytes) would exceed this is refused
     } workspace;
     struct Sampler {
@@ -4289,6 +4295,7 @@ private:
     // (-1 after them), nearest to its seed scene_seed_[b] first; robot i's window is column
     // window_col_[i] of x_ (-1: none).
     std::vector<int> scene_robots_, scene_seed_, window_col_;
+    std::vector<char> in_scene_;  // per robot: in some scene of the plan (its route_ is set)
     // One thread's share of a plan's sampling (sample_scenes): a chunk of scenes and its workspace.
     struct ChunkWorker {
         std::unique_ptr<MadbpModel> copy;  // thread 0 uses the planner's model; the others a copy, its parameters synced every plan
@@ -4335,6 +4342,10 @@ private:
         const double radius = settings.neighbourhood.sensing_radius > 0 ? settings.neighbourhood.sensing_radius : 2.0 * c.position_scale;
         choose_scenes(n, K, rule, seeds, radius);
         const int scenes = (int)scene_seed_.size();
+        // Only the scenes' robots are told where to head (plan_robot: its scene's, not its team's).
+        in_scene_.assign(n, 0);
+        for (int r : scene_robots_)
+            if (r >= 0) in_scene_[r] = 1;
         // Small plans draw small_plan_candidates. The team's robot windows: a scene per robot
         // (local; plan_robot's one scene stands for its team's n), or one scene of them all.
         if ((local ? n : 1) * std::min(K, n) <= kSmallPlanWindows) sc.candidates = std::max(sc.candidates, settings.sampler.small_plan_candidates);
@@ -4356,7 +4367,7 @@ private:
         }
         route_.resize(n);
         for (int i = 0; i < n; ++i)
-            route_[i] = waiting_[i] == PassageControl::kWait ? RouteGoal{wait_point_[i], true}
+            if (in_scene_[i]) route_[i] = waiting_[i] == PassageControl::kWait ? RouteGoal{wait_point_[i], true}
                         : route_goal(guide_, c, map, pos_[i], goal_[i],
                                      waiting_[i] == PassageControl::kGoAround ? passages_.closed_to(i) : ClosedCells{});
         // Each neighbourhood scene draws its own noise, seeded by the plan and its seed robot's id.
@@ -4500,7 +4511,7 @@ private:
             } catch (...) {
                 failed[t] = std::current_exception();
             }
-        });
+        }, /*dynamic: a chunk's windows are the same on any thread*/ true);
         for (const std::exception_ptr& e : failed)
             if (e) std::rethrow_exception(e);
     }
