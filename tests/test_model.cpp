@@ -377,6 +377,7 @@ TEST_CASE("planner: neighbourhood planning gives each agent the context of itsel
     DiffusionPlanner local(MadbpModel(c, 5), 11);
     local.settings.neighbourhood.neighbours = 2;
     local.settings.neighbourhood.cover = 0;  // a scene per robot
+    local.settings.workspace.chunk_scenes = 8;  // one chunk: model().context() is every scene's
     local.settings.neighbourhood.sensing_radius = 10;  // every nearest agent counts, however far (agent 4's is 1.8 away)
     Plan p = local.plan(w);
     REQUIRE(p.ids.size() == 5);
