@@ -28,7 +28,7 @@ EXAMPLES     := $(patsubst examples/%.cpp,$(BUILD)/%,$(EXAMPLE_SRCS))
 # benchmark, which replaces malloc and so is a program of its own.
 TOOLS        := $(BUILD)/madbp $(BUILD)/bench_alloc
 
-.PHONY: all deps check-headers test test-sanitize demo bench fuzz fuzz-build model dagger mappo-models madiff-models paper-models results clean
+.PHONY: all deps check-headers test test-sanitize demo bench fuzz fuzz-build model dagger mappo-models madiff-models paper-models results maps-eval clean
 all: deps $(TOOLS) $(EXAMPLES)
 
 # Install Eigen and doctest through apt when their headers are missing.
@@ -145,6 +145,15 @@ mappo-models: $(BUILD)/madbp
 # *.svg; resumable (rerun to continue), shardable with SUITE_FLAGS='--shard i/N'.
 results: $(BUILD)/madbp
 	$(BUILD)/madbp eval --suite paper --threads 2 $(SUITE_FLAGS)
+
+# The MovingAI tuning maps of issue 46 (maps/movingai/README.md: every .map there, real or
+# generated -gen; a map without .scen files gets rows drawn per seed, `convert --random-scen`):
+# MA-DBP, the guided expert and the straight line at cell 0.3 and 0.25 with 4, 8, 16 and 32
+# robots, seeds 0-99 (hours on 2 cores;
+# not part of `make test`). One row per episode in results/maps/episodes.tsv, the summary in
+# results/maps/episodes.md; narrower with e.g. `make maps-eval MAPS=maze-32-32-4 SEEDS="0 9"`.
+maps-eval: $(BUILD)/madbp
+	MADBP=$(BUILD)/madbp OUT=results/maps/episodes.tsv JOBS=$(JOBS) scripts/maps_eval.sh
 
 # MADiff baselines (SPEC 3.4; docs/design.md "MADiff"): expert demonstrations, then one model per
 # map:n:steps on one thread (each <= 3 min on the 2-core machine).

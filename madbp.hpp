@@ -210,10 +210,16 @@ inline int threads_for(double flops) {
 
 // Runs fn(i, thread) for i in [0, n) on `threads` threads; thread in [0, threads) indexes
 // per-thread scratch. One thread runs a plain loop: even a one-thread OpenMP region allocates
-// its team in libgomp.
+// its team in libgomp. `dynamic`: each thread takes the next i when done (items of uneven cost,
+// or a thread slowed by another job); fn's results must then not depend on which thread runs i.
 template <class F>
-inline void parallel_for(int n, int threads, const F& fn) {
+inline void parallel_for(int n, int threads, const F& fn, bool dynamic = false) {
 #ifdef _OPENMP
+    if (threads > 1 && dynamic) {
+#pragma omp parallel for num_threads(threads) schedule(dynamic, 1)
+        for (int i = 0; i < n; ++i) fn(i, omp_get_thread_num());
+        return;
+    }
     if (threads > 1) {
 #pragma omp parallel for num_threads(threads) schedule(static)
         for (int i = 0; i < n; ++i) fn(i, omp_get_thread_num());
@@ -3088,45 +3094,71 @@ inline double window_cost(const SceneBatch& batch, int s, const Mat& x, const Mo
     return cost;
 }
 
-// The scenes of `src` repeated k times into dst: scene b's copy j is scene b * k + j.
-inline void repeat_scenes(const SceneBatch& src, int k, SceneBatch& dst) {
-    const int B = src.B, n = src.n, Bk = B * k;
+namespace detail {
+// dst sized for B scenes shaped like src's (agent slots, grid and crop sizes), its shared grid
+// copied; every other value is left for copy_scene.
+inline void size_like(const SceneBatch& src, int B, SceneBatch& dst) {
+    const int n = src.n;
     const long G2 = src.grid.cols() / src.grid_scenes(), L = src.agents() ? src.local.cols() / src.agents() : 0;
-    dst.B = Bk;
+    dst.B = B;
     dst.n = n;
     dst.shared_grid = src.shared_grid;
-    dst.agent_mask.resize((size_t)Bk * n);
-    dst.slot.resize((size_t)Bk * n);
-    dst.count.resize(Bk);
-    dst.pose.resize(src.pose.rows(), (long)Bk * n);
+    dst.agent_mask.resize((size_t)B * n);
+    dst.slot.resize((size_t)B * n);
+    dst.count.resize(B);
+    dst.pose.resize(src.pose.rows(), (long)B * n);
     dst.grid.resize(1, G2 * dst.grid_scenes());
-    dst.local.resize(1, L * Bk * n);
-    dst.origin.resize(Bk);
-    dst.goal_final.resize((size_t)Bk * n);
-    dst.noise_seed.resize(src.noise_seed.empty() ? 0 : Bk);
+    dst.local.resize(1, L * B * n);
+    dst.origin.resize(B);
+    dst.goal_final.resize((size_t)B * n);
+    dst.noise_seed.resize(src.noise_seed.empty() ? 0 : B);
     if (src.shared_grid) dst.grid = src.grid;
-    for (int b = 0; b < B; ++b)
+}
+// Scene b of src as scene d of dst (sized by size_like), its noise seed included.
+inline void copy_scene(const SceneBatch& src, int b, SceneBatch& dst, int d) {
+    const int n = src.n;
+    const long G2 = src.grid.cols() / src.grid_scenes(), L = src.agents() ? src.local.cols() / src.agents() : 0;
+    dst.count[d] = src.count[b];
+    dst.origin[d] = src.origin[b];
+    if (!src.noise_seed.empty()) dst.noise_seed[d] = src.noise_seed[b];
+    if (!src.shared_grid) dst.grid.middleCols((long)d * G2, G2) = src.grid.middleCols((long)b * G2, G2);
+    for (int i = 0; i < n; ++i) {
+        const int from = b * n + i, to = d * n + i;
+        dst.agent_mask[to] = src.agent_mask[from];
+        dst.slot[to] = src.slot[from];
+        dst.goal_final[to] = src.goal_final[from];
+        dst.pose.col(to) = src.pose.col(from);
+        if (L) dst.local.middleCols((long)to * L, L) = src.local.middleCols((long)from * L, L);
+    }
+}
+}  // namespace detail
+
+// The scenes of `src` repeated k times into dst: scene b's copy j is scene b * k + j.
+inline void repeat_scenes(const SceneBatch& src, int k, SceneBatch& dst) {
+    detail::size_like(src, src.B * k, dst);
+    for (int b = 0; b < src.B; ++b)
         for (int j = 0; j < k; ++j) {
             const int d = b * k + j;
-            dst.count[d] = src.count[b];
-            dst.origin[d] = src.origin[b];
+            detail::copy_scene(src, b, dst, d);
             if (!src.noise_seed.empty()) dst.noise_seed[d] = src.noise_seed[b] + 0x9E3779B97F4A7C15ull * (uint64_t)j;  // candidates differ
-            if (!src.shared_grid) dst.grid.middleCols((long)d * G2, G2) = src.grid.middleCols((long)b * G2, G2);
-            for (int i = 0; i < n; ++i) {
-                const int from = b * n + i, to = d * n + i;
-                dst.agent_mask[to] = src.agent_mask[from];
-                dst.slot[to] = src.slot[from];
-                dst.goal_final[to] = src.goal_final[from];
-                dst.pose.col(to) = src.pose.col(from);
-                if (L) dst.local.middleCols((long)to * L, L) = src.local.middleCols((long)from * L, L);
-            }
         }
+}
+
+// Scenes first .. first + count - 1 of `src` as a batch of their own in dst.
+inline void slice_scenes(const SceneBatch& src, int first, int count, SceneBatch& dst) {
+    MADBP_ASSERT(first >= 0 && count >= 0 && first + count <= src.B);
+    detail::size_like(src, count, dst);
+    for (int d = 0; d < count; ++d) detail::copy_scene(src, first + d, dst, d);
 }
 
 // Workspaces of conflict-aware sampling, reused across draws (no heap allocation once sizes are
 // steady), and after a draw what it chose: the cost of every candidate and the one kept.
 struct ConflictWorkspace {
     MapFields fields;          // the map's clearance and goal fields: set_map(); goal fields made while sampling
+    // When set, the map's fields are read from here, never changed, instead of from `fields`
+    // (threads sampling parts of one plan share one set; its goal fields are made beforehand).
+    const MapFields* shared_fields = nullptr;
+    const MapFields& map_fields() const { return shared_fields ? *shared_fields : fields; }
     SceneBatch batch;          // the scenes repeated k times (repeat_scenes); unused when k = 1
     Mat x, out, grad;          // (2, H*A*k): every candidate's windows after the draw in x
     std::vector<int> steps;
@@ -3293,7 +3325,8 @@ void sample_conflict_aware(Denoiser& model, const NoiseSchedule& schedule, const
     const ModelConfig& c = model.config;
     const int H = c.horizon, B = batch.B, n = batch.n, S = sc.sample_steps, k = sc.candidates;
     const WindowCost& wc = sc.cost;
-    if (wc.geodesic && wc.goal_weight > 0) cw.fields.add_goals(batch, c, wc.radius);  // new goals only
+    if (wc.geodesic && wc.goal_weight > 0 && !cw.shared_fields) cw.fields.add_goals(batch, c, wc.radius);  // new goals only
+    const MapFields& fields = cw.map_fields();
     if (k > 1) repeat_scenes(batch, k, cw.batch);
     const SceneBatch& rb = k > 1 ? cw.batch : batch;
     const int Bk = rb.B;
@@ -3309,7 +3342,7 @@ void sample_conflict_aware(Denoiser& model, const NoiseSchedule& schedule, const
         x0_prediction(model, x, l, sc, cw.steps, x0);
         if (sc.guidance > 0) {
             cw.grad.setZero(2, x.cols());
-            for (int b = 0; b < Bk; ++b) window_cost(rb, b, x0, c, wc, cw.fields, &cw.grad, sc.keep_right);
+            for (int b = 0; b < Bk; ++b) window_cost(rb, b, x0, c, wc, fields, &cw.grad, sc.keep_right);
             float* p = x0.data();
             for (long j = 0; j < x.size(); ++j) p[j] = std::clamp(p[j] - step_size * cw.grad.data()[j], -sc.x0_clip, sc.x0_clip);
         }
@@ -3318,7 +3351,7 @@ void sample_conflict_aware(Denoiser& model, const NoiseSchedule& schedule, const
     // Best of k: each scene keeps its first lowest-cost candidate.
     cw.cost.resize(Bk);
     cw.best.resize(B);
-    for (int b = 0; b < Bk; ++b) cw.cost[b] = window_cost(rb, b, x, c, wc, cw.fields);
+    for (int b = 0; b < Bk; ++b) cw.cost[b] = window_cost(rb, b, x, c, wc, fields);
     x_best.resize(2, (long)H * B * n);
     for (int b = 0; b < B; ++b) {
         int best = 0;
@@ -3343,7 +3376,7 @@ void sample_windows(Denoiser& model, const NoiseSchedule& schedule, const SceneB
                     Rng& rng, Mat& x, Mat& out, std::vector<int>& step_buf, ConflictWorkspace* cw = nullptr, const Mat* warm = nullptr) {
     sc.validate(schedule.K);
     if (sc.conflict_aware()) {
-        if (!cw || cw->fields.clearance.nodes == 0)
+        if (!cw || cw->map_fields().clearance.nodes == 0)
             throw std::invalid_argument("sampler: guidance and candidates need a ConflictWorkspace holding the map's distance field (set_map)");
         detail::sample_conflict_aware(model, schedule, batch, sc, rng, x, *cw, warm);
         detail::bend_to_pinned_ends(batch, model.config, sc, x);
@@ -3400,7 +3433,20 @@ struct PlannerConfig {
         // world is larger than the training world or the team larger than n_max, else one scene.
         int neighbours = -1;
         double sensing_radius = 0;  // world units; 0 (automatic): 2 position_scale, the training world's width
+        // Neighbourhood scenes cover the team (the windows of each computed about once a plan):
+        // an uncovered robot's scene (it and its K-1 nearest) keeps the windows of its first
+        // `cover` robots not yet covered (all of them when the scene is the whole team). 0: a
+        // scene per robot, keeping only that robot's window (every window computed K times).
+        int cover = 3;
     } neighbourhood;
+    // How a plan's scenes are sampled: in chunks of chunk_scenes, each chunk on one thread with
+    // its own workspace (set_num_threads), so the workspace is bounded by the chunk, not the team.
+    // The chunk size, not the thread count, fixes the arithmetic: plans are the same on any
+    // number of threads.
+    struct Workspace {
+        int chunk_scenes = 4;  // smaller chunks were as fast or faster on one core (docs/speed.md)
+        double max_mb = 1024;  // a plan whose workspace (planner_workspace_bytes) would exceed this is refused
+    } workspace;
     struct Sampler {
         int sample_steps = 8;            // DDIM steps S, at most the model's own; 0: the model's own
         int warm_start = 4;              // run the last W of S steps from each robot's last window (0: off)
@@ -3427,6 +3473,7 @@ struct PlannerConfig {
     // follower (no lookahead, no early replans, equal filter weights, SPEC 3.2's barrier rate).
     static PlannerConfig paper() {
         PlannerConfig p;
+        p.neighbourhood.cover = 0;
         p.sampler.sample_steps = 0;
         p.sampler.warm_start = 0;
         p.sampler.line_start = false;
@@ -3509,6 +3556,12 @@ inline const std::vector<PlannerSetting>& planner_settings() {
          +[](C& c) -> int& { return c.neighbourhood.neighbours; }},
         {"neighbourhood.sensing_radius", 1e-3, 1000, "neighbours farther than this (world units) are left out",
          "2 x the model's position_scale", 0, +[](C& c) -> double& { return c.neighbourhood.sensing_radius; }},
+        {"neighbourhood.cover", 0, 1024, "windows kept per neighbourhood scene; scenes cover the team (0 = a scene per robot, its window only)", nullptr, 0,
+         +[](C& c) -> int& { return c.neighbourhood.cover; }},
+        {"workspace.chunk_scenes", 1, 1024, "scenes sampled together, on one thread with their own workspace", nullptr, 0,
+         +[](C& c) -> int& { return c.workspace.chunk_scenes; }},
+        {"workspace.max_mb", 1, 1e6, "a plan whose sampling workspace would exceed this (MB) is refused", nullptr, 0,
+         +[](C& c) -> double& { return c.workspace.max_mb; }},
         {"sampler.sample_steps", 1, 1000, "DDIM steps S, at most the model's own (a model that samples in fewer keeps its own)",
          "the model's own S", 0, +[](C& c) -> int& { return c.sampler.sample_steps; }},
         {"sampler.warm_start", 0, 1000, "a plan runs the last W of the S steps from each robot's last window (0 = off)", nullptr, 0,
@@ -4050,6 +4103,29 @@ private:
 // Section 9. Moving-window planner (SPEC 8): DiffusionPlanner, make_follower, DecentralisedTeam
 // =============================================================================================
 
+// Bytes a plan's sampling needs (PlannerConfig::workspace.max_mb checks it before allocating):
+// the scenes' inputs and windows, (scenes x K robot slots, linear in the team), plus per thread
+// the network's activations for one chunk of chunk_scenes scenes, each drawn `candidates`
+// times. The activations per robot slot are an upper estimate, measured for the shipped model
+// (docs/limits.md); the planner's other memory (routes, map fields) is not counted.
+inline double planner_workspace_bytes(const ModelConfig& c, int scenes, int K, int candidates, int chunk_scenes, int threads) {
+    const double H = c.horizon, G2 = (double)c.grid * c.grid, Gl2 = (double)c.local_grid * c.local_grid;
+    double width = c.dim;
+    for (int ch : c.channels) width += ch;
+    // One robot slot's inputs (pose, mask, its map crop) and windows (x, warm, decoded), and a scene's grid.
+    const double slot_inputs = 4.0 * (8 + Gl2 + 4 * 2 * H), scene_inputs = 4.0 * G2;
+    const double all = (double)scenes * (K * slot_inputs + scene_inputs);
+    // A chunk's activations per robot slot: the processor's and U-Net's feature maps (about
+    // kActivationFloats floats per unit of width per waypoint), the map crop's convolutions,
+    // the attention scores; per scene, the map's convolutions.
+    constexpr double kActivationFloats = 40;
+    const double slot_activations = 4.0 * (kActivationFloats * width * H + 16 * Gl2 + 2.0 * c.heads * H * H),
+                 scene_activations = 4.0 * 16 * G2;
+    const int chunk = std::min(chunk_scenes, std::max(scenes, 1));
+    const double per_thread = (double)chunk * candidates * (K * (slot_activations + slot_inputs) + scene_activations + scene_inputs);
+    return all + std::max(threads, 1) * per_thread;
+}
+
 // Plans a window for every present agent of a World with one shared model. Plug it into a
 // PlanFollower (madbp_sim.hpp) to execute the first m waypoints and replan:
 //   madbp::DiffusionPlanner planner(madbp::load_model("models/madbp-default.safetensors"));
@@ -4084,6 +4160,9 @@ public:
     // The sampler options a plan uses now (settings resolved for this model).
     SamplerConfig sampler() const { return settings.sampler_config(model_.config); }
     const SceneBatch& last_scene_batch() const { return batch_; }  // what the model saw in the last plan
+    // The agent column of last_scene_batch() whose window robot i (the world's agent i) got in the
+    // last plan() (scene a / n, slot a % n).
+    int last_window_agent(int i) const { return window_col_.at((size_t)i); }
     const ConflictWorkspace& last_candidates() const { return conflict_; }  // costs and choices of the last conflict-aware plan
     const PassageControl& passages() const { return passages_; }            // the one-lane passages of the last plan's map
     // Per robot of the last plan (take_turns): PassageControl::kWait, waits to take its turn
@@ -4132,8 +4211,9 @@ public:
             if (!std::isfinite(a.pos.x + a.pos.y + a.goal.x + a.goal.y))  // the message only on failure: no allocation
                 throw std::invalid_argument("planner: agent " + std::to_string(a.id) + " has a non-finite position or goal");
         const int K = neighbourhood(n, world.map().half_size);
-        // A scene per robot unless one scene of the whole team was asked for or chosen.
+        // Neighbourhood scenes unless one scene of the whole team was asked for or chosen.
         const bool local = settings.neighbourhood.neighbours != 0 && (K < n || world.map().half_size > model_.config.position_scale * (1 + 1e-9));
+        const SceneRule rule = !local ? SceneRule::Whole : settings.neighbourhood.cover > 0 ? SceneRule::Cover : SceneRule::PerRobot;
         pos_.resize(n);
         goal_.resize(n);
         ids_.resize(n);
@@ -4143,10 +4223,10 @@ public:
             pos_[i] = a.pos, goal_[i] = a.goal, ids_[i] = a.id, at_goal_[i] = world.at_goal(a);
         }
         now_ = world.t();
-        plan_scenes(world.map(), n, local ? n : 1, K, local);
+        plan_scenes(world.map(), n, K, rule, n);
         for (int i = 0; i < n; ++i) {
             out.ids[i] = ids_[i];
-            decode_window(local ? (long)i * K : i, pos_[i], out.waypoints[i]);  // agent i: first of scene i, or column i
+            decode_window(window_col_[i], pos_[i], out.waypoints[i]);
         }
         last_ids_.assign(ids_.begin(), ids_.end());  // what the next plan starts from (warm_start)
         last_windows_.resize(n);
@@ -4157,11 +4237,12 @@ public:
     }
 
     // Decentralised use: one robot plans its own window from what it can know, its position and
-    // goal, the other robots' positions and goals as received from them, and the map. `id` seeds
-    // the draw (use the robot's id): with the same planner seed, and `others` in the world's agent
-    // order, a first plan_robot's window equals the one a first plan() (or one with warm_start
-    // 0) gives this robot under neighbourhood planning (K = neighbourhood size of an automatic or
-    // set `neighbours`; the whole team when neighbours = 0).
+    // goal, the other robots' positions and goals as received from them, and the map: its own
+    // scene of itself and its K-1 nearest. `id` seeds the draw (use the robot's id): with the
+    // same planner seed, and `others` in the world's agent order, a first plan_robot's window
+    // equals the one a first plan() (or one with warm_start 0) gives this robot under
+    // neighbourhood planning with a scene per robot (neighbourhood.cover = 0; K = neighbourhood
+    // size of an automatic or set `neighbours`; the whole team when neighbours = 0).
     // The ids (the robot's own `id`, and Neighbour::id) break ties in taking turns, so give the
     // ids the team's plan() sees for the same turns.
     // `step`: the robot's clock in world steps (dt each), for warm starts (SamplerConfig::warm_start):
@@ -4190,14 +4271,14 @@ public:
             pos_[i] = others[i - 1].pos, goal_[i] = others[i - 1].goal, ids_[i] = others[i - 1].id;
         for (int i = 0; i < n; ++i) at_goal_[i] = WorldConfig{}.reached(pos_[i], goal_[i]);
         now_ = step;
-        plan_scenes(map, n, 1, std::min(K, n), /*local*/ true);
+        plan_scenes(map, n, std::min(K, n), SceneRule::PerRobot, /*seeds: the robot alone*/ 1);
         // The scene's windows, the robot's (slot 0) and its neighbours': the next plan_robot starts from them.
         const int m = batch_.count[0];
         last_ids_.resize(m);
         last_windows_.resize(m);
         for (int k = 0; k < m; ++k) {
-            last_ids_[k] = ids_[members_[k]];
-            decode_window(k, pos_[members_[k]], last_windows_[k]);
+            last_ids_[k] = ids_[scene_robots_[k]];
+            decode_window(k, pos_[scene_robots_[k]], last_windows_[k]);
         }
         last_t_ = step;
         window.assign(last_windows_[0].begin(), last_windows_[0].end());
@@ -4212,6 +4293,22 @@ private:
     bool grid_valid_ = false;
     Mat x_, eps_;
     std::vector<int> steps_, members_, ids_;
+    // The scenes of a plan (choose_scenes): scene b holds robots scene_robots_[b*K .. b*K + m)
+    // (-1 after them), nearest to its seed scene_seed_[b] first; robot i's window is column
+    // window_col_[i] of x_ (-1: none).
+    std::vector<int> scene_robots_, scene_seed_, window_col_;
+    std::vector<char> in_scene_;  // per robot: in some scene of the plan (its route_ is set)
+    // One thread's share of a plan's sampling (sample_scenes): a chunk of scenes and its workspace.
+    struct ChunkWorker {
+        std::unique_ptr<MadbpModel> copy;  // thread 0 uses the planner's model; the others a copy, its parameters synced every plan
+        SceneBatch batch;
+        Mat x, out, warm;
+        std::vector<int> steps;
+        ConflictWorkspace cw;  // reads the planner's map fields (shared_fields)
+        Rng rng;
+    };
+    std::vector<ChunkWorker> workers_;
+    std::vector<std::exception_ptr> failed_;  // per thread: what stopped its chunks
     std::vector<Vec2> pos_, goal_;   // the robots planned for (ego first for plan_robot)
     std::vector<char> at_goal_;
     std::vector<RouteGoal> route_;   // what each is told to head for (route_goal)
@@ -4229,16 +4326,36 @@ private:
     int last_k_ = 1;  // last_plan_candidates
     Mat warm_;  // (2, H * scenes * K) the warm windows
 
-    // Plans `scenes` scenes of at most K robots over pos_/goal_ (n robots): scene b is robot b
-    // and its nearest within the sensing radius (local), or all n robots in order. x_ holds the
-    // windows, scene b's robot k at column b * K + k.
-    void plan_scenes(const WorldMap& map, int n, int scenes, int K, bool local) {
+    // Which scenes a plan samples: the whole team in one; a scene per robot (each keeps its
+    // robot's window); or scenes that cover the team (PlannerConfig::neighbourhood.cover).
+    enum class SceneRule { Whole, PerRobot, Cover };
+
+    // Plans the scenes of at most K robots over pos_/goal_ (n robots) that `rule` makes for the
+    // first `seeds` robots (choose_scenes). x_ holds the windows, scene b's robot k at column b * K + k.
+    void plan_scenes(const WorldMap& map, int n, int K, SceneRule rule, int seeds) {
         const ModelConfig& c = model_.config;
+        const bool local = rule != SceneRule::Whole;
         if (K > c.n_max)
             throw std::invalid_argument("planner: " + std::to_string(K) + " agents per scene exceed the model's n_max = " + std::to_string(c.n_max) +
                                         (local ? "" : "; larger teams need neighbourhood planning (neighbours = K <= n_max, --neighbours K)"));
         settings.validate();
         SamplerConfig sc = settings.sampler_config(c);
+        sc.validate(schedule_.K);
+        const double radius = settings.neighbourhood.sensing_radius > 0 ? settings.neighbourhood.sensing_radius : 2.0 * c.position_scale;
+        choose_scenes(n, K, rule, seeds, radius);
+        const int scenes = (int)scene_seed_.size();
+        // Only the scenes' robots are told where to head (plan_robot: its scene's, not its team's).
+        in_scene_.assign(n, 0);
+        for (int r : scene_robots_)
+            if (r >= 0) in_scene_[r] = 1;
+        // Small plans draw small_plan_candidates. The team's robot windows: a scene per robot
+        // (local; plan_robot's one scene stands for its team's n), or one scene of them all.
+        if ((local ? n : 1) * std::min(K, n) <= kSmallPlanWindows) sc.candidates = std::max(sc.candidates, settings.sampler.small_plan_candidates);
+        const double bytes = planner_workspace_bytes(c, scenes, K, sc.candidates, settings.workspace.chunk_scenes, sample_threads(scenes));
+        if (bytes > settings.workspace.max_mb * 1e6)  // before anything of this size is allocated
+            throw std::invalid_argument("planner setting workspace.max_mb: a plan of " + std::to_string(n) + " robots (" + std::to_string(scenes) + " scenes of " +
+                                        std::to_string(K) + ") needs " + number_text(std::ceil(bytes / 1e6)) + " MB of workspace, over the limit " +
+                                        number_text(settings.workspace.max_mb) + " MB (raise it, or lower workspace.chunk_scenes)");
         const bool shared = c.frame == SceneFrame::World;  // one grid for every scene
         if (batch_.B != scenes || batch_.n != K || batch_.shared_grid != shared) {  // new buffers, grid redrawn
             batch_.resize(scenes, K, c, shared);
@@ -4252,11 +4369,10 @@ private:
         }
         route_.resize(n);
         for (int i = 0; i < n; ++i)
-            route_[i] = waiting_[i] == PassageControl::kWait ? RouteGoal{wait_point_[i], true}
+            if (in_scene_[i]) route_[i] = waiting_[i] == PassageControl::kWait ? RouteGoal{wait_point_[i], true}
                         : route_goal(guide_, c, map, pos_[i], goal_[i],
                                      waiting_[i] == PassageControl::kGoAround ? passages_.closed_to(i) : ClosedCells{});
-        const double radius = settings.neighbourhood.sensing_radius > 0 ? settings.neighbourhood.sensing_radius : 2.0 * c.position_scale;
-        // Each neighbourhood scene draws its own noise, seeded by the plan and its robot's id.
+        // Each neighbourhood scene draws its own noise, seeded by the plan and its seed robot's id.
         const uint64_t plan_seed = local ? rng_.next_u64() : 0;
         if (local) batch_.noise_seed.resize(scenes);
         else batch_.noise_seed.clear();
@@ -4265,19 +4381,11 @@ private:
         bool warm = sc.warm_starts() && ((last_t_ >= 0 && now_ > last_t_) || line_start);
         if (warm) warm_.setZero(2, (long)c.horizon * scenes * K);
         for (int b = 0; b < scenes; ++b) {
-            int m = n;
-            members_.resize(n);
-            for (int i = 0; i < n; ++i) members_[i] = i;
-            if (local) {
-                const Vec2 pb = pos_[b];
-                auto dist = [&](int i) { const Vec2 d = pos_[i] - pb; return i == b ? -1.0 : dot(d, d); };
-                m = std::min(K, n);
-                std::partial_sort(members_.begin(), members_.begin() + m, members_.end(),
-                                  [&](int i, int j) { return dist(i) < dist(j) || (dist(i) == dist(j) && i < j); });
-                while (m > 1 && dist(members_[m - 1]) > radius * radius) --m;
-                batch_.noise_seed[b] = plan_seed ^ (0x9E3779B97F4A7C15ull * (uint64_t)(ids_[b] + 1));
-            }
-            batch_.origin[b] = scene_origin(c, m, [&](int k) { return pos_[members_[k]]; });
+            const int* robots = scene_robots_.data() + (size_t)b * K;
+            int m = 0;
+            while (m < K && robots[m] >= 0) ++m;
+            if (local) batch_.noise_seed[b] = plan_seed ^ (0x9E3779B97F4A7C15ull * (uint64_t)(ids_[scene_seed_[b]] + 1));
+            batch_.origin[b] = scene_origin(c, m, [&](int k) { return pos_[robots[k]]; });
             if (!shared) encode_map(batch_, b, map, c);
             for (int k = 0; k < K; ++k) {
                 const int a = b * K + k;
@@ -4288,7 +4396,7 @@ private:
                     batch_.pose.col(a).setZero();
                     continue;
                 }
-                const int i = members_[k];
+                const int i = robots[k];
                 if (warm && !warm_from_last(i, a)) {
                     if (line_start) line_window(i, a);
                     else warm = false;
@@ -4297,12 +4405,117 @@ private:
             }
             batch_.count[b] = m;
         }
-        // Small plans draw small_plan_candidates. The team's robot windows: a scene per robot
-        // (local; plan_robot's one scene stands for its team's n), or one scene of them all.
-        if ((local ? n : 1) * std::min(K, n) <= kSmallPlanWindows) sc.candidates = std::max(sc.candidates, settings.sampler.small_plan_candidates);
         last_k_ = sc.candidates;
         if (sc.conflict_aware()) conflict_.set_map(map);  // the distance field, once per map
-        sample_windows(model_, schedule_, batch_, sc, rng_, x_, eps_, steps_, &conflict_, warm ? &warm_ : nullptr);
+        sample_scenes(sc, warm);
+    }
+
+    // Robot b's neighbourhood into members_[0, m), returns m: b and its K-1 nearest (nearest
+    // first, ties by index) within `radius`.
+    int nearest_robots(int b, int n, int K, double radius) {
+        members_.resize(n);
+        for (int i = 0; i < n; ++i) members_[i] = i;
+        const Vec2 pb = pos_[b];
+        auto dist = [&](int i) { const Vec2 d = pos_[i] - pb; return i == b ? -1.0 : dot(d, d); };
+        int m = std::min(K, n);
+        std::partial_sort(members_.begin(), members_.begin() + m, members_.end(),
+                          [&](int i, int j) { return dist(i) < dist(j) || (dist(i) == dist(j) && i < j); });
+        while (m > 1 && dist(members_[m - 1]) > radius * radius) --m;
+        return m;
+    }
+
+    // The scenes of SceneRule `rule` for robots 0 .. seeds-1 (scene_robots_, scene_seed_,
+    // window_col_). Cover: robots in order, each not yet covered seeds a scene of its
+    // neighbourhood, which keeps the windows of its first `cover` robots not yet covered (the
+    // seed first; every robot when the scene holds the whole team).
+    void choose_scenes(int n, int K, SceneRule rule, int seeds, double radius) {
+        scene_robots_.clear();
+        scene_seed_.clear();
+        window_col_.assign(n, -1);
+        auto add_scene = [&](int seed, int m) {
+            const int b = (int)scene_seed_.size();
+            scene_seed_.push_back(seed);
+            scene_robots_.insert(scene_robots_.end(), members_.begin(), members_.begin() + m);
+            scene_robots_.resize((size_t)(b + 1) * K, -1);
+            return b;
+        };
+        if (rule == SceneRule::Whole) {
+            members_.resize(n);
+            for (int i = 0; i < n; ++i) members_[i] = window_col_[i] = i;
+            add_scene(0, n);
+            return;
+        }
+        const int cover = settings.neighbourhood.cover;
+        for (int s = 0; s < seeds; ++s) {
+            if (rule == SceneRule::Cover && window_col_[s] >= 0) continue;
+            const int m = nearest_robots(s, n, K, radius);
+            const int b = add_scene(s, m);
+            if (rule == SceneRule::PerRobot) {
+                window_col_[s] = b * K;
+                continue;
+            }
+            for (int k = 0; k < m; ++k)
+                if (window_col_[members_[k]] < 0 && (k < cover || m == n)) window_col_[members_[k]] = b * K + k;
+        }
+    }
+
+    // Threads the sampling of `scenes` scenes uses: one per chunk, at most set_num_threads'.
+    int sample_threads(int scenes) const {
+        const int chunk = settings.workspace.chunk_scenes;
+        return std::max(1, std::min(detail::max_threads(), (scenes + chunk - 1) / chunk));
+    }
+
+    // Samples batch_'s scenes into x_. A plan of one chunk samples the batch itself; a larger one
+    // in chunks of workspace.chunk_scenes scenes, on sample_threads() threads, each chunk drawn
+    // whole on one thread (its noise is its scenes', batch_.noise_seed), so the windows do not
+    // depend on the thread count.
+    void sample_scenes(const SamplerConfig& sc, bool warm) {
+        const ModelConfig& c = model_.config;
+        const int B = batch_.B, K = batch_.n, chunk = settings.workspace.chunk_scenes, chunks = (B + chunk - 1) / chunk;
+        if (chunks <= 1) {
+            sample_windows(model_, schedule_, batch_, sc, rng_, x_, eps_, steps_, &conflict_, warm ? &warm_ : nullptr);
+            return;
+        }
+        MADBP_ASSERT(!batch_.noise_seed.empty());  // neighbourhood scenes: the only plans of several scenes
+        // The goal fields, made once for every chunk (the chunks only read the fields).
+        if (sc.conflict_aware() && sc.cost.geodesic && sc.cost.goal_weight > 0) conflict_.fields.add_goals(batch_, c, sc.cost.radius);
+        const int threads = sample_threads(B), k = sc.candidates;
+        if ((int)workers_.size() < threads) workers_.resize(threads);
+        for (int t = 0; t < threads; ++t) {
+            ChunkWorker& w = workers_[t];
+            if (t > 0 && !w.copy) w.copy = std::make_unique<MadbpModel>(model_.clone());
+            if (t > 0) {  // the planner's model may have been changed since the last plan
+                w.copy->params->value = model_.params->value;
+                w.copy->params->state = model_.params->state;
+            }
+            w.cw.shared_fields = &conflict_.fields;
+        }
+        const long cols = (long)c.horizon * K;  // one scene's window columns
+        x_.resize(2, cols * B);
+        conflict_.cost.resize((size_t)B * k);
+        conflict_.best.resize(B);
+        std::vector<std::exception_ptr>& failed = failed_;
+        failed.assign(threads, nullptr);
+        detail::parallel_for(chunks, threads, [&](int i, int t) {
+            if (failed[t]) return;
+            try {
+                ChunkWorker& w = workers_[t];
+                MadbpModel& model = t == 0 ? model_ : *w.copy;
+                const int first = i * chunk, count = std::min(chunk, B - first);
+                slice_scenes(batch_, first, count, w.batch);
+                if (warm) w.warm = warm_.middleCols(first * cols, count * cols);
+                sample_windows(model, schedule_, w.batch, sc, w.rng, w.x, w.out, w.steps, &w.cw, warm ? &w.warm : nullptr);
+                x_.middleCols(first * cols, count * cols) = w.x;
+                if (sc.conflict_aware()) {
+                    std::copy(w.cw.cost.begin(), w.cw.cost.end(), conflict_.cost.begin() + (size_t)first * k);
+                    std::copy(w.cw.best.begin(), w.cw.best.end(), conflict_.best.begin() + first);
+                }
+            } catch (...) {
+                failed[t] = std::current_exception();
+            }
+        }, /*dynamic: a chunk's windows are the same on any thread*/ true);
+        for (const std::exception_ptr& e : failed)
+            if (e) std::rethrow_exception(e);
     }
 
     // Agent a's columns of warm_ from robot i's last window (detail::warm_window); false without one.

@@ -29,6 +29,8 @@
 //   0.3  PassageControl and its parameters move to madbp.hpp (the planner's traffic conventions).
 //        ClearanceGrid moves to Section 2; ReachGrid is gone (detail::all_reachable on its layout).
 //        movingai_scene / load_movingai_scene: MovingAI MAPF benchmark maps and scenarios as scenes.
+//        random_movingai_scenario: seeded scenario rows for a MovingAI map without .scen files;
+//        MovingAiMap and MovingAiScenarioRow are the parsed map and rows.
 //        Scene::comments (scene_text writes them); scene_text(Scene).
 //        default_max_steps moves here from the tool; scene_step_limit follows the longest route.
 //        default_half_size(n): random worlds at constant density (1.2 up to 8 robots, 13.6 at 1024).
@@ -168,7 +170,9 @@ inline std::string number_text(double v) {
 //   4b interaction scenes: interaction_scenarios, make_interaction_world      (issue 12)
 //   5 occupancy grid: Grid, occupancy_grid, local_crop                           [2, 5]
 //   6 scene files: Scene, parse_scene, load_scene, scene_text, make_world        [2]
-//     MovingAI benchmark maps: movingai_scene, load_movingai_scene
+//     MovingAI benchmark maps: MovingAiMap, parse_movingai_map, parse_movingai_scenario,
+//       movingai_scene, load_movingai_scene, random_movingai_scenario (rows for a map
+//       without .scen files), movingai_path_length, movingai_scenario_text
 //     files: read_bounded, EnvironmentError, check_output, OutputLock, write_file_atomic
 //   7 controllers: Policy, StepModel                                             [3]
 //   8 CLF-QP: ClfQpParams, clf_qp_solve, clf_qp_action, ClfQp                    [3.1]
@@ -1533,153 +1537,386 @@ inline std::vector<Box> merge_blocked(const std::vector<uint8_t>& blocked, long 
 }
 }  // namespace detail
 
-// A scene from a MovingAI map and scenario (texts; the sources name them in messages):
-// robots i = 0..agents-1 take scenario rows offset + i (rows counted from 0 after the version
-// line). Placement, tight fit: the W x H cells, each `cell` wide, centred in a square world of
-// half-size max(W, H) * cell / 2; the margin beside a map that is not square is blocked by
-// boxes (robots stay on the map); map row r, column c has its centre at
-// (-W cell / 2 + (c + 0.5) cell, H cell / 2 - (r + 0.5) cell). Blocked cells become boxes
-// (detail::merge_blocked); starts and goals sit at cell centres. The scene's comments name the
-// files and rows. Throws std::invalid_argument "<file>:<line>: <why>" on a bad header, row length
-// or character, a scenario row with a wrong field count or a field that is not a number, a map
-// name or size that differs from the map's, a start or goal outside the map, on a blocked cell,
-// closer than `radius` to an obstacle (cell < 2 radius) or closer than 2 radius to another's,
-// too few rows; "<file>: <why>" on a world over kMaxHalfSize or more boxes than kMaxObstacles.
+// A parsed .map: width x height cells, blocked[row * width + col] = 1 for a blocked cell, row 0
+// at the top. `rows` keeps the text rows (messages quote a cell's character); `source` names
+// the file; `first_row_line` is the 1-based line of row 0 (messages give file:line).
+struct MovingAiMap {
+    std::string source;
+    long width = 0, height = 0;
+    std::vector<uint8_t> blocked;
+    std::vector<std::string> rows;
+    size_t first_row_line = 0;
+    bool passable(long col, long row) const { return col >= 0 && col < width && row >= 0 && row < height && !blocked[row * width + col]; }
+};
+// One row of a .scen file, its 9 fields; `line` is its 1-based line in the file (0 when drawn,
+// not read).
+struct MovingAiScenarioRow {
+    long bucket = 0;
+    std::string map_name;
+    long map_width = 0, map_height = 0, start_x = 0, start_y = 0, goal_x = 0, goal_y = 0;
+    double optimal_length = 0;
+    size_t line = 0;
+};
+
+// A .map text (`source` names it in messages). Throws std::invalid_argument "<source>:<line>:
+// <why>" on a bad header, row length or character, too few or too many rows.
+inline MovingAiMap parse_movingai_map(const std::string& text, const std::string& source) {
+    if (text.size() > kMaxMovingAiBytes)
+        throw std::invalid_argument(printable(source, 256) + ": " + std::to_string(text.size()) + " bytes exceed the limit kMaxMovingAiBytes = " +
+                                    std::to_string(kMaxMovingAiBytes));
+    MovingAiMap map;
+    map.source = source;
+    const std::vector<std::string> mlines = detail::text_lines(text);
+    long W = -1, H = -1;
+    bool typed = false;
+    size_t ln = 0;  // index of the line after 'map'
+    for (bool at_map = false; !at_map; ++ln) {
+        if (ln == mlines.size()) detail::fail_at(source, ln, "no 'map' line (expected the header 'type octile', 'height H', 'width W', 'map')");
+        const std::vector<std::string> w = detail::words(mlines[ln]);
+        if (w.empty()) continue;
+        if (w.size() == 1 && w[0] == "map") {
+            if (!typed || W < 0 || H < 0) detail::fail_at(source, ln + 1, "'map' before the header's 'type', 'height' and 'width' lines");
+            at_map = true;
+        } else if (w.size() == 2 && w[0] == "type") {
+            if (w[1] != "octile") detail::fail_at(source, ln + 1, "map type '" + printable(w[1]) + "' (this reader knows octile)");
+            typed = true;
+        } else if (w.size() == 2 && (w[0] == "height" || w[0] == "width")) {
+            long& v = w[0] == "height" ? H : W;
+            if (v >= 0) detail::fail_at(source, ln + 1, "'" + w[0] + "' given twice");
+            if (!detail::parse_whole(w[1], v) || v < 1 || v > kMaxMovingAiSide)
+                detail::fail_at(source, ln + 1, w[0] + ": '" + printable(w[1]) + "' is not an integer in [1, kMaxMovingAiSide = " +
+                                                    std::to_string(kMaxMovingAiSide) + "]");
+        } else {
+            detail::fail_at(source, ln + 1, "unexpected header line '" + printable(mlines[ln]) + "' (expected 'type octile', 'height H', 'width W' or 'map')");
+        }
+    }
+    map.width = W, map.height = H, map.first_row_line = ln + 1;
+    map.blocked.assign((size_t)(W * H), 0);
+    for (long row = 0; row < H; ++row) {
+        const size_t at = ln + (size_t)row;
+        if (at >= mlines.size())
+            detail::fail_at(source, mlines.size(), "the map has " + std::to_string(row) + " rows, its header says height " + std::to_string(H));
+        const std::string& s = mlines[at];
+        if ((long)s.size() != W)
+            detail::fail_at(source, at + 1, "row " + std::to_string(row) + " has " + std::to_string(s.size()) + " characters, the header says width " + std::to_string(W));
+        for (long col = 0; col < W; ++col) {
+            const int b = detail::movingai_blocked(s[col]);
+            if (b < 0) detail::fail_at(source, at + 1, "unknown terrain '" + printable(s.substr(col, 1)) + "' in column " + std::to_string(col) + " (expected . G S passable, @ O T W blocked)");
+            map.blocked[row * W + col] = (uint8_t)b;
+        }
+        map.rows.push_back(s);
+    }
+    for (size_t at = ln + H; at < mlines.size(); ++at)
+        if (!detail::words(mlines[at]).empty()) detail::fail_at(source, at + 1, "more rows than the header's height " + std::to_string(H));
+    return map;
+}
+
+namespace detail {
+// The rows of a .scen text for `map`, each field checked (not yet the cells: movingai_scene
+// checks the rows it uses); `line_count` gets the text's line count for messages at its end.
+inline std::vector<MovingAiScenarioRow> parse_movingai_rows(const std::string& text, const std::string& source, const MovingAiMap& map,
+                                                            size_t& line_count) {
+    if (text.size() > kMaxMovingAiBytes)
+        throw std::invalid_argument(printable(source, 256) + ": " + std::to_string(text.size()) + " bytes exceed the limit kMaxMovingAiBytes = " +
+                                    std::to_string(kMaxMovingAiBytes));
+    static const char* const names[] = {"bucket", "map name", "map width", "map height", "start x", "start y", "goal x", "goal y", "optimal length"};
+    const std::vector<std::string> slines = text_lines(text);
+    line_count = slines.size();
+    std::vector<MovingAiScenarioRow> rows;
+    bool versioned = false;
+    const std::string map_base = base_name(map.source);
+    const bool named = map_base.size() > 4 && map_base.compare(map_base.size() - 4, 4, ".map") == 0;
+    for (size_t at = 0; at < slines.size(); ++at) {
+        const std::vector<std::string> w = words(slines[at]);
+        if (w.empty()) continue;
+        if (!versioned) {
+            if (w.size() != 2 || w[0] != "version" || (w[1] != "1" && w[1] != "1.0")) fail_at(source, at + 1, "expected the header 'version 1'");
+            versioned = true;
+            continue;
+        }
+        const std::vector<std::string> f = split_fields(slines[at], '\t');
+        if (f.size() != 9)
+            fail_at(source, at + 1, "expected 9 tab-separated fields (bucket, map, width, height, start x, start y, goal x, goal y, optimal length), got " + std::to_string(f.size()));
+        MovingAiScenarioRow r;
+        r.line = at + 1;
+        r.map_name = f[1];
+        long* const integers[] = {&r.bucket, nullptr, &r.map_width, &r.map_height, &r.start_x, &r.start_y, &r.goal_x, &r.goal_y};
+        for (int k = 0; k < 9; ++k) {
+            if (k == 1) continue;
+            if (k == 8 ? !parse_whole(f[k], r.optimal_length) : !parse_whole(f[k], *integers[k]))
+                fail_at(source, at + 1, std::string(names[k]) + ": '" + printable(f[k]) + "' is not " + (k == 8 ? "a number" : "an integer"));
+        }
+        if (named && base_name(r.map_name) != map_base)
+            fail_at(source, at + 1, "the row is for map '" + printable(r.map_name) + "', not " + printable(map_base));
+        if (r.map_width != map.width || r.map_height != map.height)
+            fail_at(source, at + 1, "map size " + std::to_string(r.map_width) + " x " + std::to_string(r.map_height) + " differs from the map's " +
+                                        std::to_string(map.width) + " x " + std::to_string(map.height));
+        rows.push_back(r);
+    }
+    if (!versioned) fail_at(source, slines.size(), "empty scenario: expected the header 'version 1'");
+    return rows;
+}
+}  // namespace detail
+
+// The rows of a .scen text (`source` names it) for `map`: the header 'version 1', then rows of
+// 9 tab-separated fields, each checked, and the map name and size checked against `map` (the
+// cells are checked where a scene is made: movingai_scene). Throws std::invalid_argument
+// "<source>:<line>: <why>".
+inline std::vector<MovingAiScenarioRow> parse_movingai_scenario(const std::string& text, const std::string& source, const MovingAiMap& map) {
+    size_t line_count = 0;
+    return detail::parse_movingai_rows(text, source, map, line_count);
+}
+
+namespace detail {
+// Calls visit(col, row, step length) for each octile move of the benchmark from (col, row): the
+// 8 neighbours that are passable, a diagonal only when both cells beside it are passable too (no
+// corner cutting: a robot cannot squeeze between two blocked corners).
+template <class Visit>
+inline void for_each_octile_move(const MovingAiMap& map, long col, long row, Visit visit) {
+    for (long dr = -1; dr <= 1; ++dr)
+        for (long dc = -1; dc <= 1; ++dc) {
+            if ((dr == 0 && dc == 0) || !map.passable(col + dc, row + dr)) continue;
+            const bool diagonal = dr != 0 && dc != 0;
+            if (diagonal && !(map.passable(col + dc, row) && map.passable(col, row + dr))) continue;
+            visit(col + dc, row + dr, diagonal ? std::sqrt(2.0) : 1.0);
+        }
+}
+// The connected component of every cell under octile moves (-1 for a blocked cell) and, in
+// `sizes`, the cell count of each component.
+inline std::vector<int> movingai_components(const MovingAiMap& map, std::vector<long>& sizes) {
+    std::vector<int> label(map.blocked.size(), -1);
+    sizes.clear();
+    std::vector<long> stack;
+    for (long seed = 0; seed < (long)label.size(); ++seed) {
+        if (map.blocked[seed] || label[seed] >= 0) continue;
+        const int id = (int)sizes.size();
+        sizes.push_back(0);
+        label[seed] = id;
+        stack.assign(1, seed);
+        while (!stack.empty()) {
+            const long at = stack.back();
+            stack.pop_back();
+            ++sizes[id];
+            for_each_octile_move(map, at % map.width, at / map.width, [&](long c, long r, double) {
+                if (label[r * map.width + c] < 0) label[r * map.width + c] = id, stack.push_back(r * map.width + c);
+            });
+        }
+    }
+    return label;
+}
+}  // namespace detail
+
+// The length of a shortest octile path (straight steps 1, diagonal steps sqrt 2, no corner
+// cutting) on `map` from cell (start_x, start_y) to (goal_x, goal_y), x the column and y the
+// row; -1 when none exists. A* with the octile distance, which never overestimates.
+inline double movingai_path_length(const MovingAiMap& map, long start_x, long start_y, long goal_x, long goal_y) {
+    if (!map.passable(start_x, start_y) || !map.passable(goal_x, goal_y)) return -1;
+    auto estimate = [&](long c, long r) {
+        const double dx = std::abs(c - goal_x), dy = std::abs(r - goal_y);
+        return std::max(dx, dy) + (std::sqrt(2.0) - 1) * std::min(dx, dy);
+    };
+    std::vector<double> g(map.blocked.size(), std::numeric_limits<double>::infinity());
+    using Entry = std::pair<double, long>;  // (g + estimate, cell)
+    std::priority_queue<Entry, std::vector<Entry>, std::greater<Entry>> open;
+    g[start_y * map.width + start_x] = 0;
+    open.push({estimate(start_x, start_y), start_y * map.width + start_x});
+    const long goal = goal_y * map.width + goal_x;
+    while (!open.empty()) {
+        const auto [f, at] = open.top();
+        open.pop();
+        if (at == goal) return g[at];
+        const long col = at % map.width, row = at / map.width;
+        if (f > g[at] + estimate(col, row) + 1e-9) continue;  // a stale entry: `at` was reached shorter since
+        detail::for_each_octile_move(map, col, row, [&](long c, long r, double step) {
+            const long next = r * map.width + c;
+            if (g[at] + step < g[next]) g[next] = g[at] + step, open.push({g[next] + estimate(c, r), next});
+        });
+    }
+    return -1;
+}
+
+// `count` scenario rows drawn on `map` from `seed`, for a map that comes without .scen files
+// (madbp::Rng: the same rows on every platform). A row's start and goal are two passable cells
+// of one connected component under octile moves (the benchmark's: 8 directions, no corner
+// cutting); no two rows share a start, no two share a goal (one robot's start may be another's
+// goal, as in the benchmark's files). Each row has the benchmark's fields: bucket = floor(optimal
+// length / 4), the map's file name, its size, the cells, and the optimal octile path length
+// (movingai_path_length). Throws std::invalid_argument naming `count` outside [1,
+// kMaxSceneAgents], and naming the map when no two passable cells are connected or fewer than
+// `count` rows can be drawn.
+inline std::vector<MovingAiScenarioRow> random_movingai_scenario(const MovingAiMap& map, int count, uint64_t seed) {
+    if (count < 1 || count > kMaxSceneAgents)
+        throw std::invalid_argument("count: " + std::to_string(count) + " is out of range [1, kMaxSceneAgents = " + std::to_string(kMaxSceneAgents) + "]");
+    std::vector<long> sizes;
+    const std::vector<int> label = detail::movingai_components(map, sizes);
+    // Candidate starts: every cell with a neighbour to go to; the unused goals of each component,
+    // with each cell's place in its list (-1 once used) so a draw removes it in O(1).
+    std::vector<long> starts, goal_place(label.size(), -1);
+    std::vector<std::vector<long>> goals(sizes.size());
+    for (long at = 0; at < (long)label.size(); ++at)
+        if (label[at] >= 0 && sizes[label[at]] >= 2) {
+            starts.push_back(at);
+            goal_place[at] = (long)goals[label[at]].size();
+            goals[label[at]].push_back(at);
+        }
+    if (starts.empty())
+        throw std::invalid_argument(printable(map.source, 256) + ": no two passable cells are connected (octile moves, no corner cutting); "
+                                    "a random scenario needs a start and a goal in one component");
+    auto swap_to_back = [&](std::vector<long>& list, long cell) {
+        const long last = list.back();
+        std::swap(list[goal_place[cell]], list.back());
+        std::swap(goal_place[cell], goal_place[last]);
+    };
+    Rng rng(seed);
+    std::vector<MovingAiScenarioRow> rows;
+    const size_t usable = starts.size();
+    while ((int)rows.size() < count && !starts.empty()) {
+        const size_t k = (size_t)rng.uniform_int((int)starts.size());
+        const long start = starts[k];
+        starts[k] = starts.back();
+        starts.pop_back();
+        std::vector<long>& unused = goals[label[start]];
+        // The goal: any unused goal of the component but the start itself (moved out of reach).
+        const bool start_unused = goal_place[start] >= 0;
+        if (start_unused) swap_to_back(unused, start);
+        const long choices = (long)unused.size() - (start_unused ? 1 : 0);
+        if (choices == 0) continue;  // every other cell of the component is some row's goal
+        const long goal = unused[(size_t)rng.uniform_int((int)choices)];
+        swap_to_back(unused, goal);
+        unused.pop_back();
+        goal_place[goal] = -1;
+        MovingAiScenarioRow r;
+        r.map_name = detail::base_name(map.source);
+        r.map_width = map.width, r.map_height = map.height;
+        r.start_x = start % map.width, r.start_y = start / map.width, r.goal_x = goal % map.width, r.goal_y = goal / map.width;
+        r.optimal_length = movingai_path_length(map, r.start_x, r.start_y, r.goal_x, r.goal_y);
+        r.bucket = (long)std::floor(r.optimal_length / 4);
+        rows.push_back(r);
+    }
+    if ((int)rows.size() < count)
+        throw std::invalid_argument(printable(map.source, 256) + ": drew only " + std::to_string(rows.size()) + " of count = " + std::to_string(count) +
+                                    " scenario rows (distinct starts, distinct goals; " + std::to_string(usable) +
+                                    " passable cells lie in components of two or more)");
+    return rows;
+}
+
+// `rows` as a version-1 .scen text: 'version 1', then the 9 tab-separated fields of each row
+// (the optimal length with 8 decimals, as in the benchmark's files). Throws
+// std::invalid_argument naming "map name" when a row's map name holds a tab or line break.
+inline std::string movingai_scenario_text(const std::vector<MovingAiScenarioRow>& rows) {
+    std::string text = "version 1\n";
+    char length[32];
+    for (const MovingAiScenarioRow& r : rows) {
+        if (r.map_name.find_first_of("\t\r\n") != std::string::npos)
+            throw std::invalid_argument("map name: '" + printable(r.map_name) + "' holds a tab or line break");
+        std::snprintf(length, sizeof length, "%.8f", r.optimal_length);
+        text += std::to_string(r.bucket) + "\t" + r.map_name + "\t" + std::to_string(r.map_width) + "\t" + std::to_string(r.map_height) + "\t" +
+                std::to_string(r.start_x) + "\t" + std::to_string(r.start_y) + "\t" + std::to_string(r.goal_x) + "\t" + std::to_string(r.goal_y) + "\t" +
+                length + "\n";
+    }
+    return text;
+}
+
+// A scene from a parsed MovingAI map and scenario rows (`scen_source` names the rows in
+// messages and comments): robots i = 0..agents-1 take rows offset + i. Placement, tight fit: the
+// W x H cells, each `cell` wide, centred in a square world of half-size max(W, H) * cell / 2;
+// the margin beside a map that is not square is blocked by boxes (robots stay on the map); map
+// row r, column c has its centre at (-W cell / 2 + (c + 0.5) cell, H cell / 2 - (r + 0.5) cell).
+// Blocked cells become boxes (detail::merge_blocked); starts and goals sit at cell centres. The
+// scene's comments name the map, the rows and their lines. Throws std::invalid_argument
+// "<scen_source>:<line>: <why>" ("<scen_source> row K: <why>" for a drawn row) on a start or goal
+// outside the map, on a blocked cell, closer than `radius` to an obstacle (cell < 2 radius) or
+// closer than 2 radius to another's; "<source>: <why>" on too few rows, a world over
+// kMaxHalfSize or more boxes than kMaxObstacles.
+inline Scene movingai_scene(const MovingAiMap& map, const std::vector<MovingAiScenarioRow>& rows, const std::string& scen_source, int agents,
+                            double cell = 0.3, int offset = 0, double radius = 0.1) {
+    if (agents < 1 || agents > kMaxSceneAgents)
+        throw std::invalid_argument("agents: " + std::to_string(agents) + " is out of range [1, kMaxSceneAgents = " + std::to_string(kMaxSceneAgents) + "]");
+    if (offset < 0) throw std::invalid_argument("offset: must be >= 0 (got " + std::to_string(offset) + ")");
+    if (!(cell > 0) || !std::isfinite(cell)) throw std::invalid_argument("cell: must be a finite number > 0 (got " + number_text(cell) + ")");
+    if (rows.size() < (size_t)offset + (size_t)agents)
+        throw std::invalid_argument(printable(scen_source, 256) + ": has " + std::to_string(rows.size()) + " scenario rows; offset " +
+                                    std::to_string(offset) + " + " + std::to_string(agents) + " agents needs " + std::to_string((size_t)offset + agents));
+    const long W = map.width, H = map.height;
+    // Placement: the map's square, centred; blocked cells and the margin become boxes.
+    const double half = std::max(W, H) * cell / 2, x0 = -W * cell / 2, y_top = H * cell / 2;
+    if (half > kMaxHalfSize)
+        throw std::invalid_argument(printable(map.source, 256) + ": " + std::to_string(std::max(W, H)) + " cells of " + number_text(cell) +
+                                    " make a world of half-size " + number_text(half) + ", over the limit kMaxHalfSize = " + number_text(kMaxHalfSize) + " (use a smaller cell)");
+    if (!(half > 2 * radius))
+        throw std::invalid_argument(printable(map.source, 256) + ": the world's half-size " + number_text(half) + " must be > " + number_text(2 * radius) + " (use a larger cell)");
+    Scene scene;
+    scene.map.half_size = half;
+    scene.map.boxes = detail::merge_blocked(map.blocked, W, H, cell, x0, y_top);
+    if (W < H) scene.map.boxes.insert(scene.map.boxes.end(), {Box{{-half, -half}, {x0, half}}, Box{{-x0, -half}, {half, half}}});
+    if (H < W) scene.map.boxes.insert(scene.map.boxes.end(), {Box{{-half, -half}, {half, -y_top}}, Box{{-half, y_top}, {half, half}}});
+    if (scene.map.boxes.size() > (size_t)kMaxObstacles)
+        throw std::invalid_argument(printable(map.source, 256) + ": its blocked cells need " + std::to_string(scene.map.boxes.size()) +
+                                    " boxes (row runs merged), over the limit kMaxObstacles = " + std::to_string(kMaxObstacles));
+    scene.comments.push_back("MovingAI map " + printable(map.source, 256) + " (" + std::to_string(W) + " x " + std::to_string(H) + " cells of " +
+                             number_text(cell) + "), scenario " + printable(scen_source, 256) + " rows " + std::to_string(offset) + ".." +
+                             std::to_string(offset + agents - 1) + " (row 0 follows 'version 1'); cell (c, r) at (" + number_text(x0) +
+                             " + (c + 0.5) " + number_text(cell) + ", " + number_text(y_top) + " - (r + 0.5) " + number_text(cell) + ")");
+    // A row's place in messages: its file line, or its index for drawn rows (line 0).
+    auto fail_row = [&](const MovingAiScenarioRow& r, int index, const std::string& why) {
+        if (r.line > 0) detail::fail_at(scen_source, r.line, why);
+        throw std::invalid_argument(printable(scen_source, 256) + " row " + std::to_string(index) + ": " + why);
+    };
+    for (int i = 0; i < agents; ++i) {
+        const MovingAiScenarioRow& r = rows[(size_t)offset + i];
+        for (int which = 0; which < 2; ++which) {
+            const long col = which == 0 ? r.start_x : r.goal_x, row = which == 0 ? r.start_y : r.goal_y;
+            const char* name = which == 0 ? "start" : "goal";
+            const std::string at = " (" + std::to_string(col) + ", " + std::to_string(row) + ")";
+            if (col < 0 || col >= W || row < 0 || row >= H)
+                fail_row(r, offset + i, std::string(name) + at + " is outside the " + std::to_string(W) + " x " + std::to_string(H) + " map");
+            if (map.blocked[row * W + col]) fail_row(r, offset + i, std::string(name) + at + " is on a blocked cell '" + map.rows[row][col] + "'");
+            const Vec2 p{x0 + (col + 0.5) * cell, y_top - (row + 0.5) * cell};
+            if (static_clearance(scene.map, p) < radius)
+                fail_row(r, offset + i, std::string(name) + at + " is closer than a robot's radius " + number_text(radius) +
+                                            " to a blocked cell or wall (cell " + number_text(cell) + " < " + number_text(2 * radius) + ")");
+            std::vector<Vec2>& same = which == 0 ? scene.starts : scene.goals;
+            for (int j = 0; j < i; ++j)
+                if (norm(same[j] - p) < 2 * radius) {
+                    const size_t other = rows[(size_t)offset + j].line;
+                    fail_row(r, offset + i, std::string(name) + at + " overlaps the " + name + " of scenario row " + std::to_string(offset + j) +
+                                                (other > 0 ? " (line " + std::to_string(other) + ")" : ""));
+                }
+            same.push_back(p);
+        }
+        scene.comments.push_back("agent " + std::to_string(i) + ": scenario row " + std::to_string(offset + i) +
+                                 (r.line > 0 ? " (line " + std::to_string(r.line) + ")" : "") + ": start (" + std::to_string(r.start_x) + ", " +
+                                 std::to_string(r.start_y) + ") goal (" + std::to_string(r.goal_x) + ", " + std::to_string(r.goal_y) +
+                                 ") optimal length " + number_text(r.optimal_length));
+    }
+    return scene;
+}
+
+// A scene from a MovingAI map and scenario (texts; the sources name them in messages): the
+// map (parse_movingai_map) and rows (parse_movingai_scenario) as above. Errors read
+// "<file>:<line>: <why>", too few rows included; "<file>: <why>" for the world's size limits.
 inline Scene movingai_scene(const std::string& map_text, const std::string& map_source, const std::string& scen_text,
                             const std::string& scen_source, int agents, double cell = 0.3, int offset = 0, double radius = 0.1) {
     if (agents < 1 || agents > kMaxSceneAgents)
         throw std::invalid_argument("agents: " + std::to_string(agents) + " is out of range [1, kMaxSceneAgents = " + std::to_string(kMaxSceneAgents) + "]");
     if (offset < 0) throw std::invalid_argument("offset: must be >= 0 (got " + std::to_string(offset) + ")");
     if (!(cell > 0) || !std::isfinite(cell)) throw std::invalid_argument("cell: must be a finite number > 0 (got " + number_text(cell) + ")");
-    for (const auto* t : {&map_text, &scen_text})
-        if (t->size() > kMaxMovingAiBytes)
-            throw std::invalid_argument(printable(t == &map_text ? map_source : scen_source, 256) + ": " + std::to_string(t->size()) +
-                                        " bytes exceed the limit kMaxMovingAiBytes = " + std::to_string(kMaxMovingAiBytes));
-    // The map: its header, then exactly H rows of W terrain characters.
-    const std::vector<std::string> mlines = detail::text_lines(map_text);
-    long W = -1, H = -1;
-    bool typed = false;
-    size_t ln = 0;  // index of the line after 'map'
-    for (bool at_map = false; !at_map; ++ln) {
-        if (ln == mlines.size()) detail::fail_at(map_source, ln, "no 'map' line (expected the header 'type octile', 'height H', 'width W', 'map')");
-        const std::vector<std::string> w = detail::words(mlines[ln]);
-        if (w.empty()) continue;
-        if (w.size() == 1 && w[0] == "map") {
-            if (!typed || W < 0 || H < 0) detail::fail_at(map_source, ln + 1, "'map' before the header's 'type', 'height' and 'width' lines");
-            at_map = true;
-        } else if (w.size() == 2 && w[0] == "type") {
-            if (w[1] != "octile") detail::fail_at(map_source, ln + 1, "map type '" + printable(w[1]) + "' (this reader knows octile)");
-            typed = true;
-        } else if (w.size() == 2 && (w[0] == "height" || w[0] == "width")) {
-            long& v = w[0] == "height" ? H : W;
-            if (v >= 0) detail::fail_at(map_source, ln + 1, "'" + w[0] + "' given twice");
-            if (!detail::parse_whole(w[1], v) || v < 1 || v > kMaxMovingAiSide)
-                detail::fail_at(map_source, ln + 1, w[0] + ": '" + printable(w[1]) + "' is not an integer in [1, kMaxMovingAiSide = " +
-                                                        std::to_string(kMaxMovingAiSide) + "]");
-        } else {
-            detail::fail_at(map_source, ln + 1, "unexpected header line '" + printable(mlines[ln]) + "' (expected 'type octile', 'height H', 'width W' or 'map')");
-        }
-    }
-    std::vector<uint8_t> blocked((size_t)(W * H));
-    for (long row = 0; row < H; ++row) {
-        const size_t at = ln + (size_t)row;
-        if (at >= mlines.size())
-            detail::fail_at(map_source, mlines.size(), "the map has " + std::to_string(row) + " rows, its header says height " + std::to_string(H));
-        const std::string& s = mlines[at];
-        if ((long)s.size() != W)
-            detail::fail_at(map_source, at + 1, "row " + std::to_string(row) + " has " + std::to_string(s.size()) + " characters, the header says width " + std::to_string(W));
-        for (long col = 0; col < W; ++col) {
-            const int b = detail::movingai_blocked(s[col]);
-            if (b < 0) detail::fail_at(map_source, at + 1, "unknown terrain '" + printable(s.substr(col, 1)) + "' in column " + std::to_string(col) + " (expected . G S passable, @ O T W blocked)");
-            blocked[row * W + col] = (uint8_t)b;
-        }
-    }
-    for (size_t at = ln + H; at < mlines.size(); ++at)
-        if (!detail::words(mlines[at]).empty()) detail::fail_at(map_source, at + 1, "more rows than the header's height " + std::to_string(H));
-
-    // The scenario: every row's fields are checked; the rows used, their cells.
-    struct Row { size_t line; long v[7]; double optimal; std::string map_name; };  // v: bucket, width, height, sx, sy, gx, gy
-    static const char* const names[] = {"bucket", "map name", "map width", "map height", "start x", "start y", "goal x", "goal y", "optimal length"};
-    const std::vector<std::string> slines = detail::text_lines(scen_text);
-    std::vector<Row> rows;
-    bool versioned = false;
-    const std::string map_base = detail::base_name(map_source);
-    const bool named = map_base.size() > 4 && map_base.compare(map_base.size() - 4, 4, ".map") == 0;
-    for (size_t at = 0; at < slines.size(); ++at) {
-        const std::vector<std::string> w = detail::words(slines[at]);
-        if (w.empty()) continue;
-        if (!versioned) {
-            if (w.size() != 2 || w[0] != "version" || (w[1] != "1" && w[1] != "1.0"))
-                detail::fail_at(scen_source, at + 1, "expected the header 'version 1'");
-            versioned = true;
-            continue;
-        }
-        const std::vector<std::string> f = detail::split_fields(slines[at], '\t');
-        if (f.size() != 9)
-            detail::fail_at(scen_source, at + 1, "expected 9 tab-separated fields (bucket, map, width, height, start x, start y, goal x, goal y, optimal length), got " + std::to_string(f.size()));
-        Row r{at + 1, {}, 0, f[1]};
-        for (int k = 0, slot = 0; k < 9; ++k) {
-            if (k == 1) continue;
-            if (k == 8 ? !detail::parse_whole(f[k], r.optimal) : !detail::parse_whole(f[k], r.v[slot++]))
-                detail::fail_at(scen_source, at + 1, std::string(names[k]) + ": '" + printable(f[k]) + "' is not " + (k == 8 ? "a number" : "an integer"));
-        }
-        if (named && detail::base_name(r.map_name) != map_base)
-            detail::fail_at(scen_source, at + 1, "the row is for map '" + printable(r.map_name) + "', not " + printable(map_base));
-        if (r.v[1] != W || r.v[2] != H)
-            detail::fail_at(scen_source, at + 1, "map size " + std::to_string(r.v[1]) + " x " + std::to_string(r.v[2]) + " differs from the map's " +
-                                                     std::to_string(W) + " x " + std::to_string(H));
-        rows.push_back(r);
-    }
-    if (!versioned) detail::fail_at(scen_source, slines.size(), "empty scenario: expected the header 'version 1'");
+    if (scen_text.size() > kMaxMovingAiBytes)  // before the map is parsed, as each text's own limit
+        throw std::invalid_argument(printable(scen_source, 256) + ": " + std::to_string(scen_text.size()) +
+                                    " bytes exceed the limit kMaxMovingAiBytes = " + std::to_string(kMaxMovingAiBytes));
+    const MovingAiMap map = parse_movingai_map(map_text, map_source);
+    size_t line_count = 0;
+    const std::vector<MovingAiScenarioRow> rows = detail::parse_movingai_rows(scen_text, scen_source, map, line_count);
     if (rows.size() < (size_t)offset + (size_t)agents)
-        detail::fail_at(scen_source, slines.size(), "has " + std::to_string(rows.size()) + " scenario rows; offset " + std::to_string(offset) +
-                                                        " + " + std::to_string(agents) + " agents needs " + std::to_string((size_t)offset + agents));
-
-    // Placement: the map's square, centred; blocked cells and the margin become boxes.
-    const double half = std::max(W, H) * cell / 2, x0 = -W * cell / 2, y_top = H * cell / 2;
-    if (half > kMaxHalfSize)
-        throw std::invalid_argument(printable(map_source, 256) + ": " + std::to_string(std::max(W, H)) + " cells of " + number_text(cell) +
-                                    " make a world of half-size " + number_text(half) + ", over the limit kMaxHalfSize = " + number_text(kMaxHalfSize) + " (use a smaller cell)");
-    if (!(half > 2 * radius))
-        throw std::invalid_argument(printable(map_source, 256) + ": the world's half-size " + number_text(half) + " must be > " + number_text(2 * radius) + " (use a larger cell)");
-    Scene scene;
-    scene.map.half_size = half;
-    scene.map.boxes = detail::merge_blocked(blocked, W, H, cell, x0, y_top);
-    if (W < H) scene.map.boxes.insert(scene.map.boxes.end(), {Box{{-half, -half}, {x0, half}}, Box{{-x0, -half}, {half, half}}});
-    if (H < W) scene.map.boxes.insert(scene.map.boxes.end(), {Box{{-half, -half}, {half, -y_top}}, Box{{-half, y_top}, {half, half}}});
-    if (scene.map.boxes.size() > (size_t)kMaxObstacles)
-        throw std::invalid_argument(printable(map_source, 256) + ": its blocked cells need " + std::to_string(scene.map.boxes.size()) +
-                                    " boxes (row runs merged), over the limit kMaxObstacles = " + std::to_string(kMaxObstacles));
-    scene.comments.push_back("MovingAI map " + printable(map_source, 256) + " (" + std::to_string(W) + " x " + std::to_string(H) + " cells of " +
-                             number_text(cell) + "), scenario " + printable(scen_source, 256) + " rows " + std::to_string(offset) + ".." +
-                             std::to_string(offset + agents - 1) + " (row 0 follows 'version 1'); cell (c, r) at (" + number_text(x0) +
-                             " + (c + 0.5) " + number_text(cell) + ", " + number_text(y_top) + " - (r + 0.5) " + number_text(cell) + ")");
-    for (int i = 0; i < agents; ++i) {
-        const Row& r = rows[(size_t)offset + i];
-        const std::string row_name = "scenario row " + std::to_string(offset + i);
-        for (int which = 0; which < 2; ++which) {
-            const long col = r.v[3 + 2 * which], row = r.v[4 + 2 * which];
-            const char* name = which == 0 ? "start" : "goal";
-            const std::string at = " (" + std::to_string(col) + ", " + std::to_string(row) + ")";
-            if (col < 0 || col >= W || row < 0 || row >= H)
-                detail::fail_at(scen_source, r.line, std::string(name) + at + " is outside the " + std::to_string(W) + " x " + std::to_string(H) + " map");
-            if (blocked[row * W + col]) detail::fail_at(scen_source, r.line, std::string(name) + at + " is on a blocked cell '" + mlines[ln + row][col] + "'");
-            const Vec2 p{x0 + (col + 0.5) * cell, y_top - (row + 0.5) * cell};
-            if (static_clearance(scene.map, p) < radius)
-                detail::fail_at(scen_source, r.line, std::string(name) + at + " is closer than a robot's radius " + number_text(radius) +
-                                                         " to a blocked cell or wall (cell " + number_text(cell) + " < " + number_text(2 * radius) + ")");
-            std::vector<Vec2>& same = which == 0 ? scene.starts : scene.goals;
-            for (int j = 0; j < i; ++j)
-                if (norm(same[j] - p) < 2 * radius)
-                    detail::fail_at(scen_source, r.line, std::string(name) + at + " overlaps the " + name + " of scenario row " + std::to_string(offset + j) +
-                                                             " (line " + std::to_string(rows[(size_t)offset + j].line) + ")");
-            same.push_back(p);
-        }
-        scene.comments.push_back("agent " + std::to_string(i) + ": " + row_name + " (line " + std::to_string(r.line) + "): start (" +
-                                 std::to_string(r.v[3]) + ", " + std::to_string(r.v[4]) + ") goal (" + std::to_string(r.v[5]) + ", " +
-                                 std::to_string(r.v[6]) + ") optimal length " + number_text(r.optimal));
-    }
-    return scene;
+        detail::fail_at(scen_source, line_count, "has " + std::to_string(rows.size()) + " scenario rows; offset " + std::to_string(offset) +
+                                                     " + " + std::to_string(agents) + " agents needs " + std::to_string((size_t)offset + agents));
+    return movingai_scene(map, rows, scen_source, agents, cell, offset, radius);
+}
+// A .map file parsed (at most kMaxMovingAiBytes; a directory or device is refused).
+inline MovingAiMap load_movingai_map(const std::string& path) {
+    std::string text;
+    detail::read_bounded(path, kMaxMovingAiBytes, "kMaxMovingAiBytes", text);
+    return parse_movingai_map(text, path);
 }
 // movingai_scene of two files (each at most kMaxMovingAiBytes; a directory or device is refused).
 inline Scene load_movingai_scene(const std::string& map_path, const std::string& scen_path, int agents, double cell = 0.3, int offset = 0) {

@@ -783,6 +783,7 @@ TEST_CASE("planner: a plan of at most 4 robot windows draws small_plan_candidate
     for (int n : {2, 3}) {
         const World w = make_random_world("obstacles", n, 5, 2.4);
         DiffusionPlanner team(MadbpModel(c, 1), 3), robot(MadbpModel(c, 1), 3);
+        team.settings.neighbourhood.cover = 0;
         team.plan(w);
         CHECK(team.last_scene_batch().B == n);
         CHECK(team.last_plan_candidates() == (n == 2 ? 2 : 1));

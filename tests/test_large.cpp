@@ -52,6 +52,7 @@ TEST_CASE("large: a scene in the Local frame encodes the same when the whole wor
     const Vec2 shift{1.0, -1.0};
     World a = shifted_world({0, 0}), b = shifted_world(shift);
     DiffusionPlanner pa(MadbpModel(c, 3), 11), pb(MadbpModel(c, 3), 11);
+    pa.settings.neighbourhood.cover = pb.settings.neighbourhood.cover = 0;  // a scene per robot
     const Plan plan_a = pa.plan(a), plan_b = pb.plan(b);
     const SceneBatch &sa = pa.last_scene_batch(), &sb = pb.last_scene_batch();
     REQUIRE(sa.B == 5);  // a larger world: a scene per robot
@@ -155,7 +156,11 @@ TEST_CASE("large: automatic neighbourhood planning exactly when the world is lar
     {
         World w = make_random_world("empty", 2, 0, 2.4);
         p.plan(w);
+        CHECK(p.last_scene_batch().B == 1);  // scenes that cover the team: one holds it all
+        p.settings.neighbourhood.cover = 0;  // a scene per robot
+        p.plan(w);
         CHECK(p.last_scene_batch().B == 2);
+        p.settings.neighbourhood.cover = PlannerConfig{}.neighbourhood.cover;
     }
     {
         World w = make_random_world("empty", 5, 0);
@@ -166,8 +171,13 @@ TEST_CASE("large: automatic neighbourhood planning exactly when the world is lar
     {
         World w = make_random_world("empty", 7, 0);
         p.plan(w);
-        CHECK(p.last_scene_batch().B == 7);
+        CHECK(p.last_scene_batch().B > 1);  // scenes that cover the team
+        CHECK(p.last_scene_batch().B < 7);
         CHECK(p.last_scene_batch().n == 5);
+        p.settings.neighbourhood.cover = 0;  // a scene per robot
+        p.plan(w);
+        CHECK(p.last_scene_batch().B == 7);
+        p.settings.neighbourhood.cover = PlannerConfig{}.neighbourhood.cover;
     }
     p.settings.neighbourhood.neighbours = 0;  // asked for: the whole team, in any world
     CHECK(p.neighbourhood(5, 2.4) == 5);
@@ -232,6 +242,7 @@ TEST_CASE("large: a robot planning for itself gets the window the team plan give
     for (bool conflict_aware : {false, true}) {
         const ModelConfig c = local_config();
         DiffusionPlanner team(MadbpModel(c, 2), 9);
+        team.settings.neighbourhood.cover = 0;  // a scene per robot, as plan_robot's
         if (conflict_aware) team.settings.guidance.weight = 0.004f, team.settings.sampler.candidates = 2;
         const Plan plan = team.plan(world);
         for (int i = 0; i < world.size(); ++i) {
@@ -258,7 +269,7 @@ TEST_CASE("large: neighbourhood planning in the Local frame allocates nothing on
     World w = make_random_world("obstacles", 7, 1, 2.4);
     Plan plan;
     for (int i = 0; i < 2; ++i) planner.plan_into(w, plan);
-    REQUIRE(planner.last_scene_batch().B == 7);
+    REQUIRE(planner.last_scene_batch().B > 1);
     [[maybe_unused]] const long allocs = count_allocs([&] { for (int i = 0; i < 3; ++i) planner.plan_into(w, plan); });
 #if MADBP_TEST_COUNT_ALLOCS
     CHECK(allocs == 0);
@@ -297,6 +308,7 @@ TEST_CASE("large: plan_robot starts from its last windows when given its clock, 
     const World start = world;
     const int kWarm = 2, kElapsed = 3;  // of the tiny model's 5 DDIM steps; within its window of 7 waypoints
     DiffusionPlanner team(MadbpModel(c, 2), 9);
+    team.settings.neighbourhood.cover = 0;  // a scene per robot, as plan_robot's
     team.settings.neighbourhood.sensing_radius = 0.2;  // every robot alone in its scene: its warm window is its own last one in both
     team.settings.sampler.warm_start = kWarm;
     team.settings.sampler.line_start = false;  // without last windows, from noise (line_start's own test is in test_interaction)
@@ -337,6 +349,7 @@ TEST_CASE("large: DecentralisedTeam plans each robot with plan_robot: first as t
     auto model = std::make_shared<const MadbpModel>(c, 2);
     PlannerConfig options;
     options.sampler.warm_start = 2;  // of the tiny model's 5 DDIM steps
+    options.neighbourhood.cover = 0;  // the team plans a scene per robot, as plan_robot does
     World world = make_random_world("obstacles", 3, 4, 2.4);  // a larger world: the team plans a scene per robot
     const World start = world;
     DecentralisedTeam robots(model, options, 9);

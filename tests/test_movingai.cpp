@@ -1,5 +1,7 @@
-// Tests of the MovingAI benchmark import (movingai_scene) and of a scene's default step limit
-// (scene_step_limit): issue 46, items 2 and 3.
+// Tests of the MovingAI benchmark import (movingai_scene), of seeded scenario rows for a map
+// without .scen files (random_movingai_scenario, `madbp convert --random-scen`) and of a scene's
+// default step limit (scene_step_limit): issue 46.
+#include "cli_common.hpp"      // read_convert_options
 #include "limits_helpers.hpp"  // error_of, TempDir
 
 namespace {
@@ -167,4 +169,144 @@ TEST_CASE("step limit: a scene's default follows its longest route and is never 
     const int around = scene_step_limit(wall);
     CHECK(around >= 2 * (11.0 - 0.3) / 0.036);
     CHECK(around <= 2 * (11.0 + 0.3) / 0.036);
+}
+
+namespace {
+// 9 x 6: a left room (columns 0-3) and a right room (5-8) split by a wall at column 4, except
+// two cells that touch only at a corner (rows 4 and 5: no corner cutting, so they do not join
+// the rooms), and a lone cell at (8, 5) walled in.
+const std::string kRooms =
+    "type octile\n"
+    "height 6\n"
+    "width 9\n"
+    "map\n"
+    "....@....\n"
+    "....@....\n"
+    "....@....\n"
+    "....@....\n"
+    "@@@@.@@@@\n"
+    "@@@@@.@@.\n";
+// The component of a cell in kRooms: 0 left room, 1 right room, -1 any other cell.
+int room_of(long col, long row) { return row < 4 && col < 4 ? 0 : row < 4 && col > 4 ? 1 : -1; }
+}  // namespace
+
+TEST_CASE("movingai: octile path lengths take 8 directions and never cut a corner") {
+    const MovingAiMap open = parse_movingai_map("type octile\nheight 5\nwidth 5\nmap\n.....\n.....\n.....\n.....\n.....\n", "e.map");
+    CHECK(movingai_path_length(open, 0, 0, 4, 2) == doctest::Approx(2 + 2 * std::sqrt(2.0)));
+    CHECK(movingai_path_length(open, 3, 3, 3, 3) == 0);
+    // Around a blocked centre: the diagonal past its corner is not a move, so 4, not 2 sqrt 2.
+    const MovingAiMap ring = parse_movingai_map("type octile\nheight 3\nwidth 3\nmap\n...\n.@.\n...\n", "r.map");
+    CHECK(movingai_path_length(ring, 0, 0, 2, 2) == doctest::Approx(4));
+    CHECK(movingai_path_length(ring, 0, 0, 1, 1) == -1);  // blocked goal
+    const MovingAiMap rooms = parse_movingai_map(kRooms, "rooms.map");
+    CHECK(movingai_path_length(rooms, 0, 0, 5, 0) == -1);  // across the wall
+    CHECK(movingai_path_length(rooms, 4, 4, 5, 5) == -1);  // corner to corner
+    CHECK(movingai_path_length(rooms, 0, 0, 3, 3) == doctest::Approx(3 * std::sqrt(2.0)));
+}
+
+TEST_CASE("movingai: seeded random scenario rows, in one component, distinct, parsed back from their .scen text") {
+    const MovingAiMap map = parse_movingai_map(kRooms, "dir/rooms.map");
+    const std::vector<MovingAiScenarioRow> rows = random_movingai_scenario(map, 20, 7);
+    REQUIRE(rows.size() == 20);
+    std::set<std::pair<long, long>> starts, goals;
+    for (const MovingAiScenarioRow& r : rows) {
+        CAPTURE(r.start_x);
+        CAPTURE(r.start_y);
+        CAPTURE(r.goal_x);
+        CAPTURE(r.goal_y);
+        CHECK(r.map_name == "rooms.map");
+        CHECK(r.map_width == 9);
+        CHECK(r.map_height == 6);
+        CHECK(r.line == 0);
+        CHECK(room_of(r.start_x, r.start_y) >= 0);  // never the corner cells or the lone cell
+        CHECK(room_of(r.start_x, r.start_y) == room_of(r.goal_x, r.goal_y));
+        CHECK((r.start_x != r.goal_x || r.start_y != r.goal_y));
+        CHECK(r.optimal_length == doctest::Approx(movingai_path_length(map, r.start_x, r.start_y, r.goal_x, r.goal_y)));
+        CHECK(r.optimal_length > 0);
+        CHECK(r.bucket == (long)std::floor(r.optimal_length / 4));
+        starts.insert({r.start_x, r.start_y});
+        goals.insert({r.goal_x, r.goal_y});
+    }
+    CHECK(starts.size() == 20);
+    CHECK(goals.size() == 20);
+    // The same seed, the same rows; another seed, other rows.
+    const std::vector<MovingAiScenarioRow> again = random_movingai_scenario(map, 20, 7), other = random_movingai_scenario(map, 20, 8);
+    const std::string text = movingai_scenario_text(rows);
+    CHECK(movingai_scenario_text(again) == text);
+    CHECK(movingai_scenario_text(other) != text);
+    // Every usable cell: 32 room cells, each a start once and a goal once (or fewer, never more).
+    CHECK(contains(error_of([&] { random_movingai_scenario(map, 33, 0); }), "dir/rooms.map: drew only "));
+
+    // The .scen text: version 1, 9 tab-separated fields, read back by the scenario parser.
+    CHECK(starts_with(text, "version 1\n"));
+    const std::vector<MovingAiScenarioRow> read = parse_movingai_scenario(text, "rooms.scen", map);
+    REQUIRE(read.size() == rows.size());
+    for (size_t i = 0; i < rows.size(); ++i) {
+        CHECK(read[i].line == i + 2);
+        CHECK(read[i].bucket == rows[i].bucket);
+        CHECK(read[i].map_name == rows[i].map_name);
+        CHECK((read[i].start_x == rows[i].start_x && read[i].start_y == rows[i].start_y));
+        CHECK((read[i].goal_x == rows[i].goal_x && read[i].goal_y == rows[i].goal_y));
+        CHECK(read[i].optimal_length == doctest::Approx(rows[i].optimal_length).epsilon(1e-8));
+    }
+    // Drawn rows and their written file make one scene; drawn rows are named by index, not line.
+    TempDir dir;
+    write_file_atomic(dir.file("rooms.map"), kRooms);
+    write_file_atomic(dir.file("rooms.scen"), text);
+    const Scene drawn = movingai_scene(map, rows, "random, seed 7", 20);
+    const Scene loaded = load_movingai_scene(dir.file("rooms.map"), dir.file("rooms.scen"), 20);
+    CHECK(drawn.map == loaded.map);
+    CHECK(drawn.starts == loaded.starts);
+    CHECK(drawn.goals == loaded.goals);
+    CHECK(contains(scene_text(drawn), "# agent 0: scenario row 0: start ("));
+    CHECK(load_movingai_map(dir.file("rooms.map")).blocked == map.blocked);
+    std::vector<MovingAiScenarioRow> bad = rows;
+    bad[3].goal_x = 4, bad[3].goal_y = 0;
+    CHECK(starts_with(error_of([&] { movingai_scene(map, bad, "random, seed 7", 20); }), "random, seed 7 row 3: goal (4, 0) is on a blocked cell '@'"));
+    CHECK(error_of([&] { movingai_scene(map, rows, "random, seed 7", 21); }) == "random, seed 7: has 20 scenario rows; offset 0 + 21 agents needs 21");
+}
+
+TEST_CASE("movingai: a map with no two connected passable cells, or a bad count, is refused naming it") {
+    const std::string corners = "type octile\nheight 2\nwidth 2\nmap\n.@\n@.\n";
+    CHECK(error_of([&] { random_movingai_scenario(parse_movingai_map(corners, "maps/corners.map"), 1, 0); }) ==
+          "maps/corners.map: no two passable cells are connected (octile moves, no corner cutting); "
+          "a random scenario needs a start and a goal in one component");
+    const std::string walls = "type octile\nheight 1\nwidth 3\nmap\n@@@\n";
+    CHECK(starts_with(error_of([&] { random_movingai_scenario(parse_movingai_map(walls, "w.map"), 1, 0); }), "w.map: no two passable cells"));
+    const MovingAiMap two = parse_movingai_map("type octile\nheight 1\nwidth 2\nmap\n..\n", "two.map");
+    CHECK(random_movingai_scenario(two, 2, 0).size() == 2);  // a swap: 0 -> 1 and 1 -> 0
+    CHECK(starts_with(error_of([&] { random_movingai_scenario(two, 3, 0); }), "two.map: drew only 2 of count = 3 scenario rows"));
+    CHECK(starts_with(error_of([&] { random_movingai_scenario(two, 0, 0); }), "count: 0 is out of range [1, kMaxSceneAgents = 1024]"));
+    std::vector<MovingAiScenarioRow> tabbed = random_movingai_scenario(two, 1, 0);
+    tabbed[0].map_name = "a\tb.map";
+    CHECK(starts_with(error_of([&] { movingai_scenario_text(tabbed); }), "map name: 'a\\x09b.map' holds a tab or line break"));
+}
+
+TEST_CASE("convert: --random-scen and --scen are alternatives; --offset and --write-scen belong to one each") {
+    auto options_error = [](std::vector<std::string> args) {
+        return error_of([&] {
+            madbp_cli::Args a(args);
+            madbp_cli::read_convert_options(a);
+        });
+    };
+    const std::vector<std::string> base = {"--movingai", "m.map", "--agents", "4", "--out", "m.scene"};
+    auto with = [&](std::vector<std::string> more) {
+        more.insert(more.begin(), base.begin(), base.end());
+        return more;
+    };
+    CHECK(options_error(with({"--scen", "m.scen", "--offset", "8"})) == "");
+    CHECK(options_error(with({"--random-scen", "--seed", "5", "--write-scen", "m.scen"})) == "");
+    CHECK(options_error(with({"--random-scen"})) == "");  // seed 0
+    CHECK(options_error(with({"--random-scen", "--scen", "m.scen"})) == "--random-scen: give --scen FILE or --random-scen, not both");
+    CHECK(starts_with(options_error(with({"--random-scen", "--offset", "0"})), "--offset: has no meaning with --random-scen"));
+    CHECK(starts_with(options_error(with({"--scen", "m.scen", "--seed", "3"})), "--seed: picks the rows of --random-scen"));
+    CHECK(starts_with(options_error(with({"--scen", "m.scen", "--write-scen", "x.scen"})), "--write-scen: saves the rows of --random-scen"));
+    CHECK(starts_with(options_error(with({"--random-scen", "--write-scen", "m.scene"})), "--write-scen: is the same file as --out"));
+    CHECK(starts_with(options_error(base), "needs --movingai MAP.map, --scen FILE.scen or --random-scen"));
+    CHECK(options_error(with({"--random-scen", "--seed", "-1"})) == "--seed: -1 is out of range [0, 1099511627776]");
+    madbp_cli::Args a(with({"--random-scen", "--seed", "12"}));
+    const madbp_cli::ConvertOptions o = madbp_cli::read_convert_options(a);
+    CHECK(o.random_scen);
+    CHECK(o.seed == 12);
+    CHECK(o.agents == 4);
 }

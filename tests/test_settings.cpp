@@ -14,7 +14,7 @@ TEST_CASE("settings: the table names every field once, in groups, and its values
     for (const PlannerSetting& s : planner_settings()) {
         CHECK(names.insert(s.name).second);
         const std::string name = s.name, group = name.substr(0, name.find('.'));
-        CHECK((group == "neighbourhood" || group == "sampler" || group == "guidance" || group == "traffic" || group == "follower"));
+        CHECK((group == "neighbourhood" || group == "workspace" || group == "sampler" || group == "guidance" || group == "traffic" || group == "follower"));
         CHECK(find_planner_setting(name) == &s);
         CHECK(s.allows(s.get(tuned)));  // both presets are valid
         CHECK(s.allows(s.get(PlannerConfig::paper())));
@@ -66,7 +66,9 @@ TEST_CASE("settings: the presets: tuned is the default; paper is plain DDIM with
     CHECK(t.follower.lookahead == 2.0);
     CHECK(t.follower.priority_weight == 4);
     CHECK(t.follower.filter.rate == 4);
+    CHECK(t.neighbourhood.cover == 3);
     // The paper's planner.
+    CHECK(p.neighbourhood.cover == 0);  // a scene per robot where neighbourhoods are used
     CHECK(p.guidance.weight == 0);
     CHECK(p.guidance.keep_right == 0);
     CHECK(p.sampler.end_bend == 0);

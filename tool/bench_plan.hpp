@@ -65,6 +65,9 @@ inline int bench_plan(Args& a) {
     int plans = (int)a.integer("--plans", 50, 1, 1000000);
     uint64_t seed = (uint64_t)a.integer("--seed", 0, 0);
     bool json = a.flag("--json");
+    // The same first plans again on this many threads (set_num_threads), beside one thread's.
+    const int threads = (int)a.integer("--threads", 2, 1, 256);
+    const bool expert_row = !a.flag("--no-expert");  // the guided expert takes seconds per plan beyond 128 robots
     a.finish();
     for (long n : teams) check_random_world("empty", n, seed, half_sizes.of(n));  // before the long run
     if (choice.decentralised) throw std::invalid_argument("--decentralised: bench --plan times a team's plans (plan_robot: --agents 1)");
@@ -83,14 +86,16 @@ inline int bench_plan(Args& a) {
                     "per scene (x candidates) as the planner chose (automatic neighbourhoods); ms/plan: a first plan (line start: the\n"
                     "last W steps from straight lines; else all S); warm_ms: a plan 8 steps after the last, warm-started;\n"
                     "new_ms: a first plan of a new world on the same map (new goals: their goal fields are made);\n"
-                    "expert: the guided expert's ms per plan; GFLOP/s: of a first plan\n"
-                    "%4s %6s %10s %10s %10s %10s %10s %8s\n",
+                    "expert: the guided expert's ms per plan; GFLOP/s: of a first plan;\n"
+                    "ms/robot: ms/plan per robot; ms_%dt: a first plan on %d threads, x%dt: its speed-up, measured in the same run\n"
+                    "%4s %6s %10s %10s %10s %10s %10s %8s %9s %9s %6s\n",
                     model_path.c_str(), S, sc.guidance, sc.keep_right, sc.candidates,
                     madbp::kSmallPlanWindows, choice.settings.sampler.small_plan_candidates, sc.warm_start, choice.settings.sampler.line_start ? 1 : 0, config.channels[0], config.dim * config.kernel, config.dim * config.kernel, config.horizon * 8, gemm,
                     half_sizes.given > 0 ? ("half-size " + madbp::number_text(half_sizes.given)).c_str()
                                          : "half-size at constant density (1.2 up to 8 robots, 3.4 at 64, 13.6 at 1024)",
-                    "n",
-                    "scenes", "ms/plan", "warm_ms", "new_ms", "expert_ms", "GFLOP/s", "of GEMM");
+                    threads, threads, threads, "n",
+                    "scenes", "ms/plan", "warm_ms", "new_ms", "expert_ms", "GFLOP/s", "of GEMM", "ms/robot",
+                    ("ms_" + std::to_string(threads) + "t").c_str(), ("x" + std::to_string(threads) + "t").c_str());
     double robot_ms = 0, robot_warm_ms = 0;
     int robot_K = 0;
     for (long n : teams) {
@@ -109,6 +114,13 @@ inline int bench_plan(Args& a) {
         auto t0 = std::chrono::steady_clock::now();
         for (int i = 0; i < plans; ++i) planner.plan_into(world, plan), tick("first plans");
         const double secs = std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count();
+        // The same first plans on `threads` threads, right after: a side-by-side ratio.
+        madbp::set_num_threads(threads);
+        for (int i = 0; i < 2; ++i) planner.plan_into(world, plan);  // the other threads' workspaces take their sizes
+        auto p0 = std::chrono::steady_clock::now();
+        for (int i = 0; i < plans; ++i) planner.plan_into(world, plan);
+        const double threads_secs = std::chrono::duration<double>(std::chrono::steady_clock::now() - p0).count();
+        madbp::set_num_threads(1);
         const int scenes = planner.last_scene_batch().B, per_scene = planner.last_scene_batch().n;
         // Warm plans: each of `plans` plans the world 8 steps on (robots held still) right after
         // an untimed plan of the world itself, so it starts from that plan's windows.
@@ -137,8 +149,8 @@ inline int bench_plan(Args& a) {
         madbp::GuidedExpert expert(world.map());
         madbp::World ew = world;
         const int expert_plans = std::max(3, plans / 5);
-        for (int i = 0; i < expert_plans * madbp::ExpertParams{}.replan_every && !ew.done(); ++i) ew.step(expert.act(ew));
-        const double expert_ms = expert.decision_ms();
+        for (int i = 0; expert_row && i < expert_plans * madbp::ExpertParams{}.replan_every && !ew.done(); ++i) ew.step(expert.act(ew));
+        const double expert_ms = expert_row ? expert.decision_ms() : NAN;
         tick("");
         progress = nullptr;  // the line ends before the row
         if (scenes > 1 && robot_K == 0) {  // one robot's own scene (plan_robot), from the first team planned in neighbourhoods
@@ -164,11 +176,12 @@ inline int bench_plan(Args& a) {
         }
         if (json)
             std::printf("%s\n", Json().add("bench", "plan").add("agents", n).add("half_size", half_size).add("scenes", scenes).add("per_scene", per_scene).add("sample_steps", S)
-                                    .add("guidance", sc.guidance).add("keep_right", sc.keep_right).add("candidates", drawn).add("warm_start", sc.warm_start).add("line_start", choice.settings.sampler.line_start ? 1 : 0).add("ms_per_plan", ms).add("warm_ms_per_plan", warm_ms).add("new_world_ms_per_plan", new_ms).add("expert_ms_per_plan", expert_ms)
+                                    .add("guidance", sc.guidance).add("keep_right", sc.keep_right).add("candidates", drawn).add("warm_start", sc.warm_start).add("line_start", choice.settings.sampler.line_start ? 1 : 0).add("ms_per_plan", ms).add("warm_ms_per_plan", warm_ms).add("new_world_ms_per_plan", new_ms).add("expert_ms_per_plan", expert_ms).add("ms_per_robot", ms / n).add("threads", threads).add("threads_ms_per_plan", 1000 * threads_secs / plans).add("threads_speedup", secs / threads_secs)
                                     .add("gflops", rate).add("gemm_gflops", gemm).add("share_of_gemm", rate / gemm).line().c_str());
         else {
             const std::string shape = std::to_string(scenes) + "x" + std::to_string(per_scene) + (drawn > 1 ? "x" + std::to_string(drawn) : "");
-            std::printf("%4ld %6s %10.3f %10.3f %10.3f %10.3f %10.1f %7.0f%%\n", n, shape.c_str(), ms, warm_ms, new_ms, expert_ms, rate, 100 * rate / gemm);
+            std::printf("%4ld %6s %10.3f %10.3f %10.3f %10.3f %10.1f %7.0f%% %9.3f %9.3f %6.2f\n", n, shape.c_str(), ms, warm_ms, new_ms, expert_ms, rate, 100 * rate / gemm,
+                        ms / n, 1000 * threads_secs / plans, secs / threads_secs);
         }
         std::fflush(stdout);
     }

@@ -382,4 +382,39 @@ inline void write_curve_svg(const std::string& path, const madbp::Curve& curve, 
     madbp::write_text_file(path, svg);
 }
 
+// The options of `madbp convert`, read and checked: the rows come from --scen FILE (from row
+// --offset) or are drawn with --random-scen from --seed (madbp::random_movingai_scenario), never
+// both; --offset and --write-scen belong to one source each, so the other combination is an
+// error naming the flags, not silently ignored.
+struct ConvertOptions {
+    std::string map_path, scen_path, out, write_scen;
+    int agents = 0, offset = 0;
+    double cell = 0.3;
+    bool random_scen = false, json = false;
+    uint64_t seed = 0;
+};
+inline ConvertOptions read_convert_options(Args& a) {
+    ConvertOptions o;
+    o.map_path = a.str("--movingai", "");
+    o.scen_path = a.str("--scen", "");
+    o.random_scen = a.flag("--random-scen");
+    o.write_scen = a.str("--write-scen", "");
+    o.out = a.str("--out", "");
+    o.agents = (int)a.integer("--agents", 0, 1, madbp::kMaxSceneAgents);
+    o.cell = a.real("--cell", 0.3, 0.2, madbp::kMaxHalfSize);
+    o.offset = (int)a.integer("--offset", 0, 0, 1L << 30);
+    o.seed = (uint64_t)a.integer("--seed", 0, 0);
+    o.json = a.flag("--json");
+    a.finish();
+    if (o.random_scen && !o.scen_path.empty()) throw std::invalid_argument("--random-scen: give --scen FILE or --random-scen, not both");
+    if (o.random_scen && a.has("--offset"))
+        throw std::invalid_argument("--offset: has no meaning with --random-scen (the rows are drawn from --seed); leave --offset out");
+    if (!o.random_scen && a.has("--seed")) throw std::invalid_argument("--seed: picks the rows of --random-scen; with --scen FILE use --offset");
+    if (!o.random_scen && !o.write_scen.empty()) throw std::invalid_argument("--write-scen: saves the rows of --random-scen; it needs --random-scen");
+    if (!o.write_scen.empty() && o.write_scen == o.out) throw std::invalid_argument("--write-scen: is the same file as --out; choose another");
+    if (o.map_path.empty() || (o.scen_path.empty() && !o.random_scen) || o.out.empty() || o.agents == 0)
+        throw std::invalid_argument("needs --movingai MAP.map, --scen FILE.scen or --random-scen, --agents N and --out FILE.scene (see --help)");
+    return o;
+}
+
 }  // namespace madbp_cli

@@ -291,7 +291,9 @@ int cmd_bench(Args& a) {
             "                 1,2,4,8,16,32,64; each in [1, 1024]), --plans N, --half-size H (default:\n"
             "                 constant density, as for eval), and the planner flags of eval --method madbp\n"
             "                 (--model, --preset, --neighbours, --set; default the shipped model, tuned);\n"
-            "                 ms/plan is a first plan, warm_ms a plan 8 steps later\n"
+            "                 ms/plan is a first plan, warm_ms a plan 8 steps later; --threads T (default\n"
+            "                 2): the first plans again on T threads, side by side; --no-expert: skip\n"
+            "                 the guided expert's column (seconds per plan beyond 128 robots)\n"
             "  --json         one JSON object per thread count\n");
         return 0;
     }
@@ -335,34 +337,43 @@ int cmd_convert(Args& a) {
     if (a.flag("--help")) {
         std::printf(
             "madbp convert - a MovingAI MAPF benchmark map and scenario as a scene file (docs/formats.md)\n"
-            "  --movingai MAP  the .map file (type octile; . G S passable, @ O T W blocked)\n"
-            "  --scen FILE     its .scen file (version 1); robot i takes scenario row offset + i\n"
-            "  --agents N      robots (1 to 1024)\n"
-            "  --cell C        world units per map cell (default 0.3: a one-cell aisle fits a robot of\n"
-            "                  diameter 0.2; at least 0.2); the world's half-size is max(W, H) x C / 2\n"
-            "  --offset K      first scenario row used, from 0 (default 0)\n"
-            "  --out FILE      the scene file to write\n"
-            "  --json          print the result as JSON\n");
+            "  --movingai MAP    the .map file (type octile; . G S passable, @ O T W blocked)\n"
+            "  --scen FILE       its .scen file (version 1); robot i takes scenario row offset + i\n"
+            "  --random-scen     instead of --scen: draw the rows from --seed, for a map without .scen\n"
+            "                    files: start and goal in one connected component (8 directions, no\n"
+            "                    corner cutting), no two starts alike, no two goals alike\n"
+            "  --seed S          the rows of --random-scen (default 0; each seed its own rows)\n"
+            "  --write-scen FILE with --random-scen: also save the drawn rows as a version-1 .scen file\n"
+            "  --agents N        robots (1 to 1024)\n"
+            "  --cell C          world units per map cell (default 0.3: a one-cell aisle fits a robot of\n"
+            "                    diameter 0.2; at least 0.2); the world's half-size is max(W, H) x C / 2\n"
+            "  --offset K        with --scen: first scenario row used, from 0 (default 0)\n"
+            "  --out FILE        the scene file to write\n"
+            "  --json            print the result as JSON\n");
         return 0;
     }
-    const std::string map_path = a.str("--movingai", ""), scen_path = a.str("--scen", ""), out = a.str("--out", "");
-    const int agents = (int)a.integer("--agents", 0, 1, madbp::kMaxSceneAgents);
-    const double cell = a.real("--cell", 0.3, 0.2, madbp::kMaxHalfSize);
-    const int offset = (int)a.integer("--offset", 0, 0, 1L << 30);
-    const bool json = a.flag("--json");
-    a.finish();
-    if (map_path.empty() || scen_path.empty() || out.empty() || agents == 0)
-        throw std::invalid_argument("needs --movingai MAP.map, --scen FILE.scen, --agents N and --out FILE.scene (see --help)");
-    const auto locks = claim_outputs(a, {{"--out", out}});
-    const madbp::Scene scene = madbp::load_movingai_scene(map_path, scen_path, agents, cell, offset);
-    madbp::write_file_atomic(out, madbp::scene_text(scene));
+    const ConvertOptions o = read_convert_options(a);
+    std::vector<FileArg> outputs = {{"--out", o.out}};
+    if (!o.write_scen.empty()) outputs.push_back({"--write-scen", o.write_scen});
+    const auto locks = claim_outputs(a, outputs);
+    madbp::Scene scene;
+    if (o.random_scen) {
+        const madbp::MovingAiMap map = madbp::load_movingai_map(o.map_path);
+        const std::vector<madbp::MovingAiScenarioRow> rows = madbp::random_movingai_scenario(map, o.agents, o.seed);
+        const std::string source = o.write_scen.empty() ? "random, seed " + std::to_string(o.seed) : o.write_scen;
+        scene = madbp::movingai_scene(map, rows, source, o.agents, o.cell);  // checked before anything is written
+        if (!o.write_scen.empty()) madbp::write_file_atomic(o.write_scen, madbp::movingai_scenario_text(rows));
+    } else {
+        scene = madbp::load_movingai_scene(o.map_path, o.scen_path, o.agents, o.cell, o.offset);
+    }
+    madbp::write_file_atomic(o.out, madbp::scene_text(scene));
     const int steps = madbp::scene_step_limit(scene);
-    if (json)
-        std::printf("%s\n", Json().add("out", out).add("half_size", scene.map.half_size).add("boxes", (long)scene.map.boxes.size())
-                                .add("agents", agents).add("max_steps", steps).line().c_str());
+    if (o.json)
+        std::printf("%s\n", Json().add("out", o.out).add("half_size", scene.map.half_size).add("boxes", (long)scene.map.boxes.size())
+                                .add("agents", o.agents).add("max_steps", steps).line().c_str());
     else
-        std::printf("wrote %s: world half-size %s, %zu boxes, %d robots; default step limit %d\n", out.c_str(),
-                    madbp::number_text(scene.map.half_size).c_str(), scene.map.boxes.size(), agents, steps);
+        std::printf("wrote %s: world half-size %s, %zu boxes, %d robots; default step limit %d\n", o.out.c_str(),
+                    madbp::number_text(scene.map.half_size).c_str(), scene.map.boxes.size(), o.agents, steps);
     return 0;
 }
 

@@ -1,0 +1,120 @@
+// Planning large teams (issue 47): scenes that cover the team, sampled in chunks on threads with
+// the same results on any number of them, in a bounded workspace (madbp.hpp Section 9).
+#include <doctest/doctest.h>
+
+#include "madbp.hpp"
+#include "madbp_sim.hpp"
+#include "tiny_model.hpp"
+
+using namespace madbp;
+
+namespace {
+// Restores OpenMP's thread count for the tests that follow in the same binary.
+struct ThreadCountGuard {
+#ifdef _OPENMP
+    int threads = omp_get_max_threads();
+    ~ThreadCountGuard() { omp_set_num_threads(threads); }
+#endif
+};
+
+// Two plans (a first one and a warm one 4 steps on) of a 24-robot world with `threads` threads.
+std::vector<Plan> plans_with(int threads, int chunk_scenes, int cover) {
+    set_num_threads(threads);
+    DiffusionPlanner planner(MadbpModel(tiny_config(), 3), 17);  // K = n_max = 6; guidance and goal fields on
+    planner.settings.workspace.chunk_scenes = chunk_scenes;
+    planner.settings.neighbourhood.cover = cover;
+    World w = make_random_world("obstacles", 24, 5, 2.4);
+    std::vector<Plan> out{planner.plan(w)};
+    for (int k = 0; k < 4; ++k) w.step(std::vector<Vec2>(w.size(), Vec2{0.2, 0.1}));
+    out.push_back(planner.plan(w));
+    return out;
+}
+}  // namespace
+
+TEST_CASE("scale: a plan on 2 threads is the plan on one, bit for bit") {
+    ThreadCountGuard restore;
+    for (int chunk : {2, 1024})      // several chunks (one per thread at a time), and the whole batch as one
+        for (int cover : {3, 0}) {   // scenes that cover the team, and a scene per robot
+            CAPTURE(chunk);
+            CAPTURE(cover);
+            const std::vector<Plan> one = plans_with(1, chunk, cover), two = plans_with(2, chunk, cover);
+            for (size_t p = 0; p < one.size(); ++p) {
+                REQUIRE(one[p].ids == two[p].ids);
+                bool same = true;
+                for (size_t i = 0; i < one[p].waypoints.size(); ++i)
+                    for (size_t t = 0; t < one[p].waypoints[i].size(); ++t)
+                        same = same && one[p].waypoints[i][t].x == two[p].waypoints[i][t].x && one[p].waypoints[i][t].y == two[p].waypoints[i][t].y;
+                CHECK(same);
+            }
+        }
+    // The chunk size is arithmetic, not only scheduling: the windows stay close across sizes.
+    const std::vector<Plan> small = plans_with(1, 2, 3), whole = plans_with(1, 1024, 3);
+    double gap = 0;
+    for (size_t i = 0; i < small[0].waypoints.size(); ++i)
+        for (size_t t = 0; t < small[0].waypoints[i].size(); ++t) gap = std::max(gap, norm(small[0].waypoints[i][t] - whole[0].waypoints[i][t]));
+    CHECK(gap < 1e-3);
+}
+
+TEST_CASE("scale: scenes that cover the team give every robot a window, from a scene it is in") {
+    const ModelConfig c = tiny_config();
+    for (int n : {1, 5, 6, 7, 24, 40})
+        for (int cover : {1, 2, 3, 6})
+          for (double radius : {0.0, 10.0}) {  // the default sensing radius, and one that sees everyone
+            CAPTURE(n);
+            CAPTURE(cover);
+            CAPTURE(radius);
+            DiffusionPlanner planner(MadbpModel(c, 1), 4);
+            planner.settings.neighbourhood.cover = cover;
+            planner.settings.neighbourhood.sensing_radius = radius;
+            planner.settings.workspace.chunk_scenes = 3;
+            const World w = make_random_world("empty", n, 2, 2.4);
+            const Plan p = planner.plan(w);
+            const SceneBatch& b = planner.last_scene_batch();
+            REQUIRE((int)p.waypoints.size() == n);
+            std::vector<int> kept(b.agents(), 0);
+            for (int i = 0; i < n; ++i) {
+                const int a = planner.last_window_agent(i);
+                REQUIRE(a >= 0);
+                REQUIRE(a < b.agents());
+                CHECK(b.agent_mask[a] == 1.0f);
+                CHECK(norm(b.position(a, c) - w.agents()[i].pos) < 1e-5);  // the robot's own slot
+                CHECK(++kept[a] == 1);                                    // no window given twice
+                for (Vec2 q : p.waypoints[i]) CHECK((std::isfinite(q.x) && std::isfinite(q.y)));
+            }
+            // Each scene keeps at most `cover` windows unless it holds the whole team, and at least one.
+            for (int s = 0; s < b.B; ++s) {
+                int windows = 0;
+                for (int k = 0; k < b.n; ++k) windows += kept[s * b.n + k];
+                CHECK(windows >= 1);
+                CHECK((windows <= cover || b.count[s] == n));
+            }
+            if (n <= b.n && radius > 0) CHECK(b.B == 1);  // a team within one neighbourhood: one scene
+            if (n > b.n && cover > 1) CHECK(b.B < n);
+        }
+    // A scene per robot (cover 0, the paper preset's): n scenes, robot i's window from slot 0 of scene i.
+    DiffusionPlanner per_robot(MadbpModel(c, 1), 4, PlannerConfig::paper());
+    const World w = make_random_world("empty", 9, 2, 2.4);
+    per_robot.plan(w);
+    CHECK(per_robot.last_scene_batch().B == 9);
+    for (int i = 0; i < 9; ++i) CHECK(per_robot.last_window_agent(i) == i * per_robot.last_scene_batch().n);
+}
+
+TEST_CASE("scale: the planner's workspace is bounded by its chunks, linear in the team, and checked before a plan") {
+    const ModelConfig c = tiny_config();
+    // Linear in the scenes; one chunk's activations per thread, whatever the team.
+    const double b0 = planner_workspace_bytes(c, 100, 6, 1, 8, 1), b1 = planner_workspace_bytes(c, 200, 6, 1, 8, 1),
+                 b2 = planner_workspace_bytes(c, 400, 6, 1, 8, 1);
+    CHECK(b2 - b1 == doctest::Approx(2 * (b1 - b0)));
+    CHECK(planner_workspace_bytes(c, 400, 6, 1, 400, 1) > 10 * b2);  // without chunks it grows with the batch
+    CHECK(planner_workspace_bytes(c, 400, 6, 1, 8, 2) > b2);          // a chunk per thread
+    // A plan over the limit is refused before it allocates, naming the setting.
+    DiffusionPlanner planner(MadbpModel(c, 1), 4);
+    const World w = make_random_world("empty", 24, 2, 2.4);
+    planner.settings.workspace.max_mb = 1;
+    planner.settings.workspace.chunk_scenes = 1024;
+    CHECK_THROWS_WITH_AS(planner.plan(w), doctest::Contains("workspace.max_mb"), std::invalid_argument);
+    planner.settings.workspace.chunk_scenes = 2;  // small chunks fit
+    CHECK(planner.plan(w).ids.size() == 24);
+    planner.settings.workspace.chunk_scenes = 0;
+    CHECK_THROWS_WITH_AS(planner.plan(w), doctest::Contains("workspace.chunk_scenes"), std::invalid_argument);
+}
