@@ -90,6 +90,11 @@
 //     DecentralisedTeam                                                                [8]
 //
 // Changelog
+//   0.4  Neighbourhood scenes cover the team (neighbourhood.cover, default 3; 0 = a scene per
+//        robot, the paper preset): each window is computed about once a plan, not K times.
+//        Scenes are sampled in chunks (workspace.chunk_scenes) on set_num_threads' threads,
+//        bit-identical on any thread count; planner_workspace_bytes() is checked against
+//        workspace.max_mb before a plan. last_window_agent(i). plan_robot routes only its scene.
 //   0.3  PlannerConfig: every planner setting in one struct, its defaults written once.
 //        PlannerConfig::tuned() (the default) and paper() (the paper's planner) presets.
 //        planner_settings(): one table behind validate(), set(), --set and --list-settings.
@@ -137,7 +142,7 @@
 #pragma GCC diagnostic ignored "-Wuninitialized"
 #endif
 #include "madbp_sim.hpp"
-#if MADBP_VERSION_MAJOR != 0 || MADBP_VERSION_MINOR != 3
+#if MADBP_VERSION_MAJOR != 0 || MADBP_VERSION_MINOR != 4
 #error "madbp.hpp is release 0.3; the madbp_sim.hpp it includes is another release"
 #endif
 

@@ -59,7 +59,7 @@
 
 // The release of the three headers; madbp.hpp and madbp_train.hpp check that they come from it.
 #define MADBP_VERSION_MAJOR 0
-#define MADBP_VERSION_MINOR 3
+#define MADBP_VERSION_MINOR 4
 #define MADBP_VERSION_PATCH 0
 
 #ifndef MADBP_ASSERT

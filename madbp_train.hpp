@@ -52,7 +52,7 @@
 #define MADBP_TRAIN_HPP
 
 #include "madbp.hpp"
-#if MADBP_VERSION_MAJOR != 0 || MADBP_VERSION_MINOR != 3
+#if MADBP_VERSION_MAJOR != 0 || MADBP_VERSION_MINOR != 4
 #error "madbp_train.hpp is release 0.3; the madbp.hpp it includes is another release"
 #endif
 
