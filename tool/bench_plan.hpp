@@ -87,16 +87,19 @@ inline int bench_plan(Args& a) {
                     "last W steps from straight lines; else all S); warm_ms: a plan 8 steps after the last, warm-started;\n"
                     "new_ms: a first plan of a new world on the same map (new goals: their goal fields are made);\n"
                     "expert: the guided expert's ms per plan; GFLOP/s: of a first plan;\n"
-                    "ms/robot: ms/plan per robot; ms_%dt: a first plan on %d threads, x%dt: its speed-up, measured in the same run\n"
-                    "%4s %6s %10s %10s %10s %10s %10s %8s %9s %9s %6s\n",
+                    "ms/robot: ms/plan per robot; growth: ms/plan grows as n^growth from the row above (1 = linear in robots);\n"
+                    "ms_%dt: a first plan on %d threads, x%dt: its speed-up, measured in the same run\n"
+                    "%4s %6s %10s %10s %10s %10s %10s %8s %9s %6s %9s %6s\n",
                     model_path.c_str(), S, sc.guidance, sc.keep_right, sc.candidates,
                     madbp::kSmallPlanWindows, choice.settings.sampler.small_plan_candidates, sc.warm_start, choice.settings.sampler.line_start ? 1 : 0, config.channels[0], config.dim * config.kernel, config.dim * config.kernel, config.horizon * 8, gemm,
                     half_sizes.given > 0 ? ("half-size " + madbp::number_text(half_sizes.given)).c_str()
                                          : "half-size at constant density (1.2 up to 8 robots, 3.4 at 64, 13.6 at 1024)",
                     threads, threads, threads, "n",
-                    "scenes", "ms/plan", "warm_ms", "new_ms", "expert_ms", "GFLOP/s", "of GEMM", "ms/robot",
+                    "scenes", "ms/plan", "warm_ms", "new_ms", "expert_ms", "GFLOP/s", "of GEMM", "ms/robot", "growth",
                     ("ms_" + std::to_string(threads) + "t").c_str(), ("x" + std::to_string(threads) + "t").c_str());
     double robot_ms = 0, robot_warm_ms = 0;
+    double last_ms = 0;  // the row above: the growth exponent
+    long last_n = 0;
     int robot_K = 0;
     for (long n : teams) {
         madbp::DiffusionPlanner planner(loaded.clone(), seed, choice.settings);
@@ -144,7 +147,7 @@ inline int bench_plan(Args& a) {
             tick(i + 1 < plans ? "new worlds" : "the expert");
         }
         const int drawn = planner.last_plan_candidates();  // candidates per scene (small plans draw more)
-        const double ms = 1000 * secs / plans, warm_ms = 1000 * warm_secs / plans, new_ms = 1000 * new_secs / plans, rate = plan_flops(config, per_scene, first_steps) * scenes * drawn / (secs / plans) / 1e9;
+        const double ms = 1000 * secs / plans, growth = last_n > 0 && n > last_n ? std::log(ms / last_ms) / std::log((double)n / last_n) : NAN, warm_ms = 1000 * warm_secs / plans, new_ms = 1000 * new_secs / plans, rate = plan_flops(config, per_scene, first_steps) * scenes * drawn / (secs / plans) / 1e9;
         // The guided expert on the same world: mean ms per plan over `plans` / 5 plans (at least 3).
         madbp::GuidedExpert expert(world.map());
         madbp::World ew = world;
@@ -176,14 +179,15 @@ inline int bench_plan(Args& a) {
         }
         if (json)
             std::printf("%s\n", Json().add("bench", "plan").add("agents", n).add("half_size", half_size).add("scenes", scenes).add("per_scene", per_scene).add("sample_steps", S)
-                                    .add("guidance", sc.guidance).add("keep_right", sc.keep_right).add("candidates", drawn).add("warm_start", sc.warm_start).add("line_start", choice.settings.sampler.line_start ? 1 : 0).add("ms_per_plan", ms).add("warm_ms_per_plan", warm_ms).add("new_world_ms_per_plan", new_ms).add("expert_ms_per_plan", expert_ms).add("ms_per_robot", ms / n).add("threads", threads).add("threads_ms_per_plan", 1000 * threads_secs / plans).add("threads_speedup", secs / threads_secs)
+                                    .add("guidance", sc.guidance).add("keep_right", sc.keep_right).add("candidates", drawn).add("warm_start", sc.warm_start).add("line_start", choice.settings.sampler.line_start ? 1 : 0).add("ms_per_plan", ms).add("warm_ms_per_plan", warm_ms).add("new_world_ms_per_plan", new_ms).add("expert_ms_per_plan", expert_ms).add("ms_per_robot", ms / n).add("growth", growth).add("threads", threads).add("threads_ms_per_plan", 1000 * threads_secs / plans).add("threads_speedup", secs / threads_secs)
                                     .add("gflops", rate).add("gemm_gflops", gemm).add("share_of_gemm", rate / gemm).line().c_str());
         else {
             const std::string shape = std::to_string(scenes) + "x" + std::to_string(per_scene) + (drawn > 1 ? "x" + std::to_string(drawn) : "");
-            std::printf("%4ld %6s %10.3f %10.3f %10.3f %10.3f %10.1f %7.0f%% %9.3f %9.3f %6.2f\n", n, shape.c_str(), ms, warm_ms, new_ms, expert_ms, rate, 100 * rate / gemm,
-                        ms / n, 1000 * threads_secs / plans, secs / threads_secs);
+            std::printf("%4ld %6s %10.3f %10.3f %10.3f %10.3f %10.1f %7.0f%% %9.3f %6.2f %9.3f %6.2f\n", n, shape.c_str(), ms, warm_ms, new_ms, expert_ms, rate, 100 * rate / gemm,
+                        ms / n, growth, 1000 * threads_secs / plans, secs / threads_secs);
         }
         std::fflush(stdout);
+        last_ms = ms, last_n = n;
     }
     if (robot_K > 0) {
         if (json)
