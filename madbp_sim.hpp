@@ -2683,8 +2683,12 @@ public:
         if (!(distance > 0) || !std::isfinite(distance)) throw std::invalid_argument("RouteGuide: distance must be a positive number");
         set_map(map);
         check(closed);
-        if (norm(goal - p) <= distance && visible(p, goal, closed)) return {goal, true};
-        if (visible(p, goal, closed, clear)) return {p + (goal - p) * (distance / norm(goal - p)), false};  // no field needed
+        const bool within = norm(goal - p) <= distance;
+        if (within && visible(p, goal, closed)) return {goal, true};
+        // Far, with the straight way keeping the preferred clearance: no field needed. (Near and
+        // not in view, the walk decides: with the defaults, clear > view_clear, that straight way
+        // is not clear either, and a point `distance` along it would pass the goal.)
+        if (!within && visible(p, goal, closed, clear)) return {p + (goal - p) * (distance / norm(goal - p)), false};
         const std::vector<int>& steps = field(grid_.index(goal), closed);
         int k = start_cell(steps, grid_.index(p));
         if (k < 0) return {goal, true};  // no route known from here: head straight for the goal
