@@ -24,7 +24,7 @@
 //   madbp::World world = madbp::make_random_world("barrier", 4, /*seed=*/0);
 //   madbp::DiffusionPlanner planner(madbp::load_model(madbp::default_model_path()));
 //   madbp::PlanFollower follower = madbp::make_follower(planner);
-//   while (!world.done()) world.step(follower.act(world));   // replans every 8 steps
+//   while (!world.done()) world.step(follower.act(world));   // replans every 4 steps
 // default_model_path() finds the shipped model madbp-default.safetensors: $MADBP_MODEL if set
 // (the file itself; missing is an error), else the first that exists of <executable>/../share/
 // madbp/models (an install, also moved), MADBP_MODEL_DIR (macro set by the CMake package and
@@ -3491,6 +3491,7 @@ struct PlannerConfig {
         p.follower.priority_weight = 1;
         p.follower.lookahead = 0;
         p.follower.replan_error = 0;
+        p.follower.replan_every = 8;  // SPEC 8: half the shipped model's window
         p.follower.filter = SafetyFilterParams{};
         return p;
     }

@@ -1,5 +1,5 @@
 // plan_diffusion.cpp - plan a scene with the shipped MA-DBP diffusion model, print the result,
-// draw it. The loop a simulator or robot runs: plan a window, follow it, replan every 8 steps.
+// draw it. The loop a simulator or robot runs: plan a window, follow it, replan every 4 steps.
 //   build/plan_diffusion [examples/swap4.scene] [MODEL (default: madbp::default_model_path())] [out.svg]
 #include <cstdio>
 
@@ -13,7 +13,7 @@ int main(int argc, char** argv) {
         madbp::World world = madbp::make_world(madbp::load_scene(scene));  // map + robots
         const std::string model = argc > 2 ? argv[2] : madbp::default_model_path();  // $MADBP_MODEL, the install, ./models
         madbp::DiffusionPlanner planner(madbp::load_model(model), /*seed=*/0);
-        // The tracker and safety filter follow each window; a new one every 8 steps.
+        // The tracker and safety filter follow each window; a new one every 4 steps.
         madbp::PlanFollower follower([&](const madbp::World& w) { return planner.plan(w); });
         madbp::EpisodeLog log;
         log.map = world.map();

@@ -67,6 +67,7 @@ TEST_CASE("settings: the presets: tuned is the default; paper is plain DDIM with
     CHECK(t.follower.priority_weight == 4);
     CHECK(t.follower.filter.rate == 4);
     CHECK(t.neighbourhood.cover == 3);
+    CHECK(t.follower.replan_every == 4);  // a quarter of the shipped window
     // The paper's planner.
     CHECK(p.neighbourhood.cover == 0);  // a scene per robot where neighbourhoods are used
     CHECK(p.guidance.weight == 0);
@@ -81,6 +82,7 @@ TEST_CASE("settings: the presets: tuned is the default; paper is plain DDIM with
     CHECK(p.follower.lookahead == 0);
     CHECK(p.follower.priority_weight == 1);
     CHECK(p.follower.replan_error == 0);
+    CHECK(p.follower.replan_every == 8);  // SPEC 8: m = H/2 of the shipped window
     CHECK(p.follower.filter.rate == SafetyFilterParams{}.rate);
     // Resolved for a model: automatic values become the model's.
     ModelConfig c = tiny_config();  // its own S is 5

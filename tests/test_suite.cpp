@@ -247,8 +247,14 @@ TEST_CASE("suite: a whole shrunken suite runs, writes every report, resumes, ret
     CHECK(table1.find("n/a (missing " + models + "/madiff/empty-2.safetensors)") != std::string::npos);
     CHECK(table1.find(".96 ± .024") != std::string::npos);  // the paper's MAPPO, empty n = 2
     CHECK(count_lines(read_text(out + "/table2.md"), "| CT+LE | 2 |") == 1);
-    CHECK(count_lines(read_text(out + "/horizon.md"), "| 8 | 2 | 8 | 4 |") == 1);  // the file's H = 8: replan 4
+    CHECK(count_lines(read_text(out + "/horizon.md"), "| 8 | 2 | 8 | 2 |") == 1);  // the file's H = 8: the tuned planner replans every H/4 = 2
     CHECK(count_lines(read_text(out + "/fig3b.md"), "| 2 |") == 1);
+    {  // Steps per plan with the tiny models' 8-step window: the paper's planner H/2, the tuned H/4, the line 8.
+        const SuiteStore st = load_suite_store(out + "/cells.tsv");
+        CHECK(st.at("table1/empty/n=2/madbp-paper").get("replan") == "4");
+        CHECK(st.at("table1/empty/n=2/madbp").get("replan") == "2");
+        CHECK(st.at("table1/empty/n=2/line").get("replan") == "8");
+    }
     const std::string fig3a = read_text(out + "/fig3a.md");
     CHECK(count_lines(fig3a, "| 4 |") == 1);
     CHECK(count_lines(fig3a, "| fig3a/mappo/k=") == 3);  // 1, 2, 4: each trained once

@@ -72,7 +72,8 @@ int cmd_eval(Args& a) {
             "  --scenario NAME   interaction scenes instead of random spawns on each --map, n <= 4: swap,\n"
             "                    cross, gap, corridor, parked, circle (madbp_sim.hpp Section 4b)\n"
             "  --no-filter       turn the safety filter off (line and planners)\n"
-            "  --replan M        steps executed per plan (default 8)\n"
+            "  --replan M        steps executed per plan (default: madbp 4, madbp --preset paper 8,\n"
+            "                    the others 8)\n"
             "  --threads T       episodes in parallel (default 1; results do not depend on it)\n"
             "  --half-size H     half-size of random worlds (default: constant density, 1.2 up to 8 robots,\n"
             "                    about 0.425 sqrt(n) beyond: 3.4 at 64, 13.6 at 1024; with --scenario 1.2; at most 100)\n"
@@ -97,7 +98,7 @@ int cmd_eval(Args& a) {
     bool json = a.flag("--json");
     MethodSetup setup;
     setup.filter = !a.flag("--no-filter");
-    setup.replan = (int)a.integer("--replan", 8, 1, 1000);
+    setup.replan = (int)a.integer("--replan", 0, 1, 1000);
     int threads = (int)a.integer("--threads", 1, 1, 256);
     const HalfSize half_size = read_half_size(a);
     const int max_steps = (int)a.integer("--max-steps", 0, 1, 1000000);  // 0: default_max_steps
@@ -227,7 +228,7 @@ int cmd_render(Args& a) {
     setup.map = a.str("--map", "barrier");
     setup.agents = (int)a.integer("--agents", 4, 1, kMaxTeam);
     setup.filter = !a.flag("--no-filter");
-    setup.replan = (int)a.integer("--replan", 8, 1, 1000);
+    setup.replan = (int)a.integer("--replan", 0, 1, 1000);
     uint64_t seed = (uint64_t)a.integer("--seed", 0, 0);
     std::string scene_path = a.str("--scene", ""), out = a.str("--out", "episode.svg");
     std::string scenario = read_scenario(a, scene_path);

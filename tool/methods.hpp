@@ -13,11 +13,14 @@
 namespace madbp_cli {
 
 // Options shared by every method, read by eval and render.
+// Steps per plan of the line and MAPPO rows: SPEC 8's m, as the paper measures them.
+constexpr int kBaselineReplan = 8;
 struct MethodSetup {
     std::string map;      // map name, or "scene"
     int agents = 0;       // team size of the cell
     bool filter = true;   // --no-filter turns the safety filter off
-    int replan = 8;       // --replan M: steps executed per plan
+    int replan = 0;       // --replan M: steps executed per plan; 0: the method's own (the planner
+                          // preset's follower.replan_every, kBaselineReplan for the others)
 };
 // --model FILE wherever a method or bench plans with MA-DBP; without it the shipped model,
 // looked up (madbp::default_model_path) only then, so that --model FILE needs no shipped model.
@@ -63,7 +66,7 @@ inline std::vector<Method> methods() {
                  [](Args& a, const MethodSetup& s) {
                      madbp::FollowerConfig fc;
                      fc.safety_filter = s.filter;
-                     fc.replan_every = s.replan;
+                     fc.replan_every = s.replan > 0 ? s.replan : kBaselineReplan;
                      fc.priority_weight = 1;  // the SPEC 3.5 baseline as measured throughout: equal weights,
                      fc.lookahead = a.real("--lookahead", 0, 0, madbp::kMaxLookahead);  // the waypoint planned for this step
                      fc.filter = madbp::SafetyFilterParams{};  // SPEC 3.2's filter rate, 2.5/s,

@@ -129,7 +129,7 @@ inline int cmd_mappo(Args& a) {
             "  --json              print the summary as JSON\n"
             "  --bench-decision LIST  instead of training: us per step of MAPPO (the actor, width\n"
             "                      --hidden), CLF-QP and MA-DBP (plan amortised over --replan M\n"
-            "                      steps, default 8; --model FILE, default the shipped model,\n"
+            "                      steps, default 4; --model FILE, default the shipped model,\n"
             "                      'none' to skip) for each team size, e.g. 1,2,4,8,16 (Fig. 3b)\n"
             "  --bench-steps K     steps timed per size (default 5000)\n");
         return 0;
@@ -161,7 +161,7 @@ inline int cmd_mappo(Args& a) {
     if (!bench.empty()) {
         const std::vector<long> counts = a.integers("--bench-decision", bench, 1, 64);
         std::string model = model_option(a);
-        const int replan = (int)a.integer("--replan", 8, 1, 1000);
+        const int replan = (int)a.integer("--replan", madbp::FollowerConfig{}.replan_every, 1, 1000);
         a.finish();
         return bench_decision(counts, c.hidden, bench_steps, c.seed, model == "none" ? "" : model, replan, json);
     }

@@ -37,7 +37,7 @@ inline PlannerChoice read_planner_choice(Args& a, const MethodSetup* setup = nul
         throw std::invalid_argument("--preset: expected tuned or paper, got '" + madbp::printable(preset) + "'");
     }
     if (setup) {
-        o.settings.follower.replan_every = setup->replan;
+        if (setup->replan > 0) o.settings.follower.replan_every = setup->replan;
         o.settings.follower.safety_filter = setup->filter;
     }
     apply_planner_settings(a, o.settings);

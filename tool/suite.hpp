@@ -377,14 +377,15 @@ inline void put_eval_result(SuiteRecord& r, const madbp::EvalResult& e) {
 inline madbp::ModelConfig model_config_of(const std::string& path) {
     return madbp::ModelConfig::from_metadata(madbp::load_safetensors(path).metadata, path);
 }
-// The executor's replan interval for a model file: half its window (SPEC 8, m = H/2).
-inline int model_replan(const std::string& path) {
+// The executor's replan interval for a model file: the paper's planner half its window (SPEC 8,
+// m = H/2), the tuned planner a quarter (FollowerConfig::replan_every: 4 of the shipped 16 steps).
+inline int model_replan(const std::string& path, bool paper_preset) {
     const madbp::ModelConfig mc = model_config_of(path);
-    return std::max(1, mc.horizon * mc.waypoint_stride / 2);
+    return std::max(1, mc.horizon * mc.waypoint_stride / (paper_preset ? 2 : 4));
 }
 
 // A method exactly as `madbp eval --method NAME [options]` builds it. A madbp model's replan
-// interval is half its window; other methods get eval's default (8).
+// interval follows its window (model_replan); other methods get kBaselineReplan.
 // "madbp-kK": MA-DBP with neighbourhood planning of K agents per scene (`--neighbours K`);
 // "madbp-paper": the paper's planner (`--preset paper`).
 inline bool is_madbp(const std::string& method) { return method == "madbp" || method == "madbp-paper" || method.rfind("madbp-k", 0) == 0; }
@@ -404,9 +405,11 @@ inline MethodSpec registry_method(std::string name, std::vector<std::string> opt
     setup.agents = n;
     if (name == "madbp") {
         auto it = std::find(options.begin(), options.end(), "--model");
-        if (it != options.end() && it + 1 != options.end()) setup.replan = model_replan(*(it + 1));
+        const auto preset = std::find(options.begin(), options.end(), "--preset");
+        const bool paper = preset != options.end() && preset + 1 != options.end() && *(preset + 1) == "paper";
+        if (it != options.end() && it + 1 != options.end()) setup.replan = model_replan(*(it + 1), paper);
     }
-    if (replan_used) *replan_used = setup.replan;
+    if (replan_used) *replan_used = setup.replan > 0 ? setup.replan : kBaselineReplan;
     Args a(options);
     MethodSpec spec = find_method(all, name).make(a, setup);
     a.finish();
@@ -602,7 +605,7 @@ inline SuiteCell fig3b_cell(const SuiteConfig& cfg, const std::string& model) {
     c.needs = {model};
     c.base.set("model", model).set("steps", cfg.fig3b_steps);
     c.run = [&cfg, model](SuiteRecord& r) {
-        const int replan = model_replan(model);
+        const int replan = model_replan(model, false);
         r.set("replan", replan);
         std::vector<SuiteRecord> rows;
         // measure_decision_times (methods_mappo.hpp): every method in one run on one thread.
