@@ -3410,7 +3410,12 @@ struct TrafficConfig {
     bool take_turns = true;        // robots that would meet head-on in a one-lane passage take turns (false: each heads for its goal)
     int passage_replan = 4;        // while robots may meet in a passage, a plan asks to be replaced after this many steps (0: never)
     double one_lane_width = 0.47;  // passages narrower than this, wall to wall, are one-lane (on the grid: 0.45 always, 0.50 never)
-    double free_clear = 0.12;      // a robot's centre fits where the clearance is >= this (radius + 0.02)
+    // A robot's centre fits where the clearance is >= this (radius + 0.02). A 0.25-wide aisle then
+    // leaves a 0.01 band that the 0.036 cells hold at about a quarter of wall offsets, so such
+    // aisles are routed but rarely taken in turns; RouteClearance::min (0.102) finds them all and
+    // helps mazes at cell 0.25, but costs the barrier's corridor swap of four (docs/experiments.md,
+    // "Aisles as passages"): not the default.
+    double free_clear = 0.12;
     double lookahead = 1.2;        // a robot claims the first passage within this distance along its route
     double spare = 0;              // a claim from another mouth waits if it would enter before a holder is this far out
     double wait_back = 0.45;       // the nearest waiting robot waits this far out from its mouth,

@@ -117,6 +117,24 @@ TEST_CASE("passages: the one-lane line (0.47): corridors up to 0.45 wide whereve
     }
 }
 
+TEST_CASE("passages: a 0.25 corridor is found wherever it falls with free_clear 0.102, only at some offsets with 0.12") {
+    // A MovingAI aisle at cell 0.25 leaves a centre band of 0.25 - 2 free_clear: 0.046 with
+    // RouteClearance::min, wider than a 0.036 cell; 0.01 with the default (TrafficConfig).
+    int found_default = 0;
+    for (int k = 0; k < 11; ++k) {
+        const double x0 = -0.3 + 0.0547 * k;
+        INFO("offset " << x0);
+        const WorldMap map = corridor_map(0.25, 0.4, false, x0);
+        RouteGuide guide;
+        PassageControl aisles;
+        aisles.params.free_clear = RouteClearance{}.min;
+        const std::vector<int>& p = aisles.passage(guide, map);
+        CHECK(*std::max_element(p.begin(), p.end()) == 0);
+        found_default += count_passages(map);
+    }
+    CHECK(found_default < 11);
+}
+
 TEST_CASE("passages: obstacle groups; a corridor is found when narrow gaps around it join its ends") {
     WorldMap m;
     m.discs.push_back({{0.9, 0.9}, 0.2});     // 0.1 from two borders: one with them
