@@ -84,7 +84,7 @@ inline int bench_plan(Args& a) {
                     "Eigen GEMM %dx%d * %dx%d: %.1f GFLOP/s\n"
                     "random empty worlds: %s; scenes x robots\n"
                     "per scene (x candidates) as the planner chose (automatic neighbourhoods); ms/plan: a first plan (line start: the\n"
-                    "last W steps from straight lines; else all S); warm_ms: a plan 8 steps after the last, warm-started;\n"
+                    "last W steps from straight lines; else all S); warm_ms: a plan follower.replan_every steps after the last, warm-started;\n"
                     "new_ms: a first plan of a new world on the same map (new goals: their goal fields are made);\n"
                     "expert: the guided expert's ms per plan; GFLOP/s: of a first plan;\n"
                     "ms/robot: ms/plan per robot; growth: ms/plan grows as n^growth from the row above (1 = linear in robots);\n"
@@ -125,9 +125,10 @@ inline int bench_plan(Args& a) {
         const double threads_secs = std::chrono::duration<double>(std::chrono::steady_clock::now() - p0).count();
         madbp::set_num_threads(1);
         const int scenes = planner.last_scene_batch().B, per_scene = planner.last_scene_batch().n;
-        // Warm plans: each of `plans` plans the world 8 steps on (robots held still) right after
-        // an untimed plan of the world itself, so it starts from that plan's windows.
-        const madbp::World later = held_still(world, 8);
+        // Warm plans: each of `plans` plans the world one replan interval on (robots held still)
+        // right after an untimed plan of the world itself, so it starts from that plan's windows.
+        const int interval = choice.settings.follower.replan_every;
+        const madbp::World later = held_still(world, interval);
         double warm_secs = 0;
         for (int i = 0; i < plans; ++i) {
             planner.plan_into(world, plan);
@@ -166,12 +167,12 @@ inline int bench_plan(Args& a) {
             auto r0 = std::chrono::steady_clock::now();
             for (int i = 0; i < plans; ++i) plan_robot_at(-1);
             robot_ms = 1000 * std::chrono::duration<double>(std::chrono::steady_clock::now() - r0).count() / plans;
-            // Warm: the robot's clock 8 steps on (robots held still), right after an untimed plan at step 0.
+            // Warm: the robot's clock one replan interval on (robots held still), right after an untimed plan at step 0.
             double warm_secs = 0;
             for (int i = 0; i < plans; ++i) {
                 plan_robot_at(0);
                 auto w0 = std::chrono::steady_clock::now();
-                plan_robot_at(8);
+                plan_robot_at(interval);
                 warm_secs += std::chrono::duration<double>(std::chrono::steady_clock::now() - w0).count();
             }
             robot_warm_ms = 1000 * warm_secs / plans;
