@@ -292,7 +292,7 @@ int cmd_bench(Args& a) {
             "                 1,2,4,8,16,32,64; each in [1, 1024]), --plans N, --half-size H (default:\n"
             "                 constant density, as for eval), and the planner flags of eval --method madbp\n"
             "                 (--model, --preset, --neighbours, --set; default the shipped model, tuned);\n"
-            "                 ms/plan is a first plan, warm_ms a plan 8 steps later; --threads T (default\n"
+            "                 ms/plan is a first plan, warm_ms one replan interval later; --threads T (default\n"
             "                 2): the first plans again on T threads, side by side; --no-expert: skip\n"
             "                 the guided expert's column (seconds per plan beyond 128 robots)\n"
             "  --json         one JSON object per thread count\n");
