@@ -143,7 +143,7 @@
 #endif
 #include "madbp_sim.hpp"
 #if MADBP_VERSION_MAJOR != 0 || MADBP_VERSION_MINOR != 4
-#error "madbp.hpp is release 0.3; the madbp_sim.hpp it includes is another release"
+#error "madbp.hpp is release 0.4; the madbp_sim.hpp it includes is another release"
 #endif
 
 #include <Eigen/Dense>

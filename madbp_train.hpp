@@ -53,7 +53,7 @@
 
 #include "madbp.hpp"
 #if MADBP_VERSION_MAJOR != 0 || MADBP_VERSION_MINOR != 4
-#error "madbp_train.hpp is release 0.3; the madbp.hpp it includes is another release"
+#error "madbp_train.hpp is release 0.4; the madbp.hpp it includes is another release"
 #endif
 
 #include <array>

@@ -13,14 +13,14 @@
 namespace madbp_cli {
 
 // Options shared by every method, read by eval and render.
-// Steps per plan of the line and MAPPO rows: SPEC 8's m, as the paper measures them.
+// Steps per plan of the straight line's rows: SPEC 8's m, as the paper measures them.
 constexpr int kBaselineReplan = 8;
 struct MethodSetup {
     std::string map;      // map name, or "scene"
     int agents = 0;       // team size of the cell
     bool filter = true;   // --no-filter turns the safety filter off
     int replan = 0;       // --replan M: steps executed per plan; 0: the method's own (the planner
-                          // preset's follower.replan_every, kBaselineReplan for the others)
+                          // preset's follower.replan_every, kBaselineReplan for the line)
 };
 // --model FILE wherever a method or bench plans with MA-DBP; without it the shipped model,
 // looked up (madbp::default_model_path) only then, so that --model FILE needs no shipped model.

@@ -377,11 +377,13 @@ inline void put_eval_result(SuiteRecord& r, const madbp::EvalResult& e) {
 inline madbp::ModelConfig model_config_of(const std::string& path) {
     return madbp::ModelConfig::from_metadata(madbp::load_safetensors(path).metadata, path);
 }
-// The executor's replan interval for a model file: the paper's planner half its window (SPEC 8,
-// m = H/2), the tuned planner a quarter (FollowerConfig::replan_every: 4 of the shipped 16 steps).
+// The executor's replan interval for a model file: the preset's follower.replan_every, which is
+// written for the default window (ModelConfig{}: 16 steps), scaled to the file's window; so the
+// paper's planner executes half of it (SPEC 8, m = H/2) and the tuned planner a quarter.
 inline int model_replan(const std::string& path, bool paper_preset) {
-    const madbp::ModelConfig mc = model_config_of(path);
-    return std::max(1, mc.horizon * mc.waypoint_stride / (paper_preset ? 2 : 4));
+    const madbp::ModelConfig mc = model_config_of(path), shipped;
+    const int m = madbp::PlannerConfig::preset(paper_preset ? "paper" : "tuned").follower.replan_every;
+    return std::max(1, m * mc.horizon * mc.waypoint_stride / (shipped.horizon * shipped.waypoint_stride));
 }
 
 // A method exactly as `madbp eval --method NAME [options]` builds it. A madbp model's replan
@@ -1190,8 +1192,8 @@ inline std::string table2_report(const SuiteConfig& cfg, const SuiteStore& st) {
         }
     return "# Table II: ablation, empty map (paper Table II)\n\n" + episodes_note(st, "table2/") +
            " Each cell: success ± standard error / collisions per episode; \"(paper)\": the paper's published success. "
-           "Models: models/paper/ablation-{CT|MW}-{LE|AAP}-n{k}.safetensors; each plans with replan interval H/2 of its own "
-           "window H (read from the file).\n\n" +
+           "Models: models/paper/ablation-{CT|MW}-{LE|AAP}-n{k}.safetensors; the tuned planner executes a quarter of each "
+           "model's window H per plan (H/4, H read from the file).\n\n" +
            t.text();
 }
 
@@ -1206,8 +1208,8 @@ inline std::string horizon_report(const SuiteConfig& cfg, const SuiteStore& st) 
                               r ? num_text(r->num("steps"), 1) : "-", r ? num_text(r->num("plan_ms"), 2) : "-"});
         }
     return "# Window length H (MW + AAP, trained on n <= 4, empty map)\n\n" + episodes_note(st, "horizon/") +
-           " Models: models/paper/ablation-MW-AAP-n4-h{H}.safetensors (H = 16: ablation-MW-AAP-n4). Each executes H/2 "
-           "steps per plan (SPEC 8). plan_ms: mean wall time of one window plan (one core).\n\n" +
+           " Models: models/paper/ablation-MW-AAP-n4-h{H}.safetensors (H = 16: ablation-MW-AAP-n4). The tuned planner executes "
+           "H/4 steps per plan (the replan column). plan_ms: mean wall time of one window plan (one core).\n\n" +
            t.text();
 }
 inline void write_horizon_svg(const SuiteConfig& cfg, const SuiteStore& st, const std::string& path) {
