@@ -25,7 +25,8 @@
 //        fields within kFieldCacheBytes (LRU; kMaxFields is gone), needs none where the straight way
 //        is clear (straight(), steps_to(), workspace_bytes()); GuidedExpert plans on a RouteGuide
 //        (ExpertParams::min_clear, narrow_cost) with a sparse space-time A* and bucketed
-//        reservations, and its plans start from the robot's position.
+//        reservations, and its plans start from the robot's position. RouteField: a cached
+//        wavefront in 2 bytes a cell (4 only when a cost reaches 65535); steps_to() returns one.
 //   0.3  PassageControl and its parameters move to madbp.hpp (the planner's traffic conventions).
 //        ClearanceGrid moves to Section 2; ReachGrid is gone (detail::all_reachable on its layout).
 //        movingai_scene / load_movingai_scene: MovingAI MAPF benchmark maps and scenarios as scenes.
@@ -2667,11 +2668,33 @@ inline std::vector<int> wavefront(const ClearanceGrid& cg, int goal_cell, double
 // `distance` and in view, or the walk arrives, the goal is returned and `final` is set.
 // A route may be asked to keep out of some cells (ClosedCells: a corridor others are using; the
 // walk, the view and the wavefront then avoid them).
-// Memory: the grid (4 bytes a cell, <= kRouteMaxGridSide^2) plus wavefronts (4 bytes a cell
-// each) up to kFieldCacheBytes; beyond, the least recently used ones are dropped.
+// Memory: the grid (4 bytes a cell, <= kRouteMaxGridSide^2) plus wavefronts (RouteField: 2 bytes
+// a cell each) up to kFieldCacheBytes; beyond, the least recently used ones are dropped.
 struct RouteGoal {
     Vec2 goal;           // where to head: the goal itself or a subgoal on the way
     bool final = true;   // goal is the robot's real goal (the planner may pin the window's end to it)
+};
+// A cached wavefront: the route cost per cell, -1 where the goal cannot be reached. Stored in 2
+// bytes a cell when every cost is below 65535 (any world but very long narrow routes: a cost is
+// at most 1 + narrow_cost a cell), else in 4; either way it reads back the wavefront's ints, so
+// the routes are the same. A guide's cache then holds twice the goals in the same bytes.
+class RouteField {
+public:
+    RouteField() = default;
+    explicit RouteField(std::vector<int>&& steps) {
+        const int top = steps.empty() ? 0 : *std::max_element(steps.begin(), steps.end());
+        if (top >= kNone) { wide_ = std::move(steps); return; }
+        narrow_.resize(steps.size());
+        for (size_t k = 0; k < steps.size(); ++k) narrow_[k] = steps[k] < 0 ? kNone : (uint16_t)steps[k];
+    }
+    int operator[](size_t k) const { return wide_.empty() ? (narrow_[k] == kNone ? -1 : narrow_[k]) : wide_[k]; }
+    size_t size() const { return wide_.empty() ? narrow_.size() : wide_.size(); }
+    size_t bytes() const { return narrow_.capacity() * sizeof(uint16_t) + wide_.capacity() * sizeof(int); }
+
+private:
+    static constexpr int kNone = 0xFFFF;  // unreachable, in the 2-byte form
+    std::vector<uint16_t> narrow_;
+    std::vector<int> wide_;
 };
 class RouteGuide {
 public:
@@ -2695,7 +2718,7 @@ public:
         // not in view, the walk decides: with the defaults, clear > view_clear, that straight way
         // is not clear either, and a point `distance` along it would pass the goal.)
         if (!within && visible(p, goal, closed, clear)) return {p + (goal - p) * (distance / norm(goal - p)), false};
-        const std::vector<int>& steps = field(grid_.index(goal), closed);
+        const RouteField& steps = field(grid_.index(goal), closed);
         int k = start_cell(steps, grid_.index(p));
         if (k < 0) return {goal, true};  // no route known from here: head straight for the goal
         Vec2 sub = grid_.centre(k);
@@ -2716,7 +2739,7 @@ public:
     void route_cells(const WorldMap& map, Vec2 p, Vec2 goal, int max_cells, std::vector<int>& cells) {
         set_map(map);
         cells.clear();
-        const std::vector<int>& steps = field(grid_.index(goal));
+        const RouteField& steps = field(grid_.index(goal));
         int k = start_cell(steps, grid_.index(p));
         while (k >= 0 && (int)cells.size() < max_cells) {
             cells.push_back(k);
@@ -2740,7 +2763,7 @@ public:
     const ClearanceGrid& grid(const WorldMap& map) { set_map(map); return grid_; }  // the grid made for `map`
     // The wavefront (route cost per cell, -1: unreachable) of goal's cell on `map`; valid until
     // the next call that may make a field.
-    const std::vector<int>& steps_to(const WorldMap& map, Vec2 goal) { set_map(map); return field(grid_.index(goal)); }
+    const RouteField& steps_to(const WorldMap& map, Vec2 goal) { set_map(map); return field(grid_.index(goal)); }
     // Wavefront steps from p's cell to goal's, the guided expert's priority key (its plan cells
     // and clearance; a step into a narrow cell counts 1 + narrow_cost); kRouteUnreachable when no
     // route is known.
@@ -2755,7 +2778,7 @@ public:
     int walk_steps(const WorldMap& map, Vec2 p, Vec2 goal, ClosedCells closed) {
         set_map(map);
         check(closed);
-        const std::vector<int>& steps = field(grid_.index(goal), closed);
+        const RouteField& steps = field(grid_.index(goal), closed);
         const int k = start_cell(steps, grid_.index(p));
         return k >= 0 ? steps[k] : kRouteUnreachable;
     }
@@ -2763,7 +2786,7 @@ public:
     // (one field more while it is being made).
     size_t workspace_bytes() const {
         size_t bytes = grid_.clear.capacity() * sizeof(float);
-        for (const auto& f : fields_) bytes += f.second.steps.capacity() * sizeof(int);
+        for (const auto& f : fields_) bytes += f.second.steps.bytes();
         return bytes;
     }
     size_t fields_cached() const { return fields_.size(); }
@@ -2772,7 +2795,7 @@ private:
     ClearanceGrid grid_;
     WorldMap map_;
     struct Field {
-        std::vector<int> steps;
+        RouteField steps;
         uint64_t used = 0;  // when last asked for (least recently used goes first)
     };
     std::map<std::pair<int, uint64_t>, Field> fields_;  // (goal cell, closed key) -> wavefront
@@ -2787,19 +2810,19 @@ private:
         fields_.clear();
         field_bytes_ = 0;
     }
-    const std::vector<int>& field(int goal_cell, ClosedCells closed = {}) {
+    const RouteField& field(int goal_cell, ClosedCells closed = {}) {
         const std::pair<int, uint64_t> key{goal_cell, closed.any() ? closed.key : 0};
         auto it = fields_.find(key);
         if (it == fields_.end()) {
-            const size_t bytes = (size_t)grid_.n * grid_.n * sizeof(int);
-            while (!fields_.empty() && field_bytes_ + bytes > kFieldCacheBytes) {
+            RouteField made(wavefront(grid_, goal_cell, route(), closed));
+            while (!fields_.empty() && field_bytes_ + made.bytes() > kFieldCacheBytes) {
                 auto oldest = fields_.begin();
                 for (auto f = fields_.begin(); f != fields_.end(); ++f) if (f->second.used < oldest->second.used) oldest = f;
-                field_bytes_ -= oldest->second.steps.size() * sizeof(int);
+                field_bytes_ -= oldest->second.steps.bytes();
                 fields_.erase(oldest);
             }
-            it = fields_.emplace(key, Field{wavefront(grid_, goal_cell, route(), closed), 0}).first;
-            field_bytes_ += bytes;
+            field_bytes_ += made.bytes();
+            it = fields_.emplace(key, Field{std::move(made), 0}).first;
         }
         it->second.used = ++clock_;
         return it->second.steps;
@@ -2840,7 +2863,7 @@ private:
     }
     // Where a walk on `steps` starts from cell k: k, or when k is too close to the map the
     // reachable cell within 2 cells nearest the goal; -1 when there is none.
-    int start_cell(const std::vector<int>& steps, int k) const {
+    int start_cell(const RouteField& steps, int k) const {
         if (steps[k] >= 0) return k;
         const int n = grid_.n;
         int best = -1;
@@ -2855,7 +2878,7 @@ private:
     }
     // Downhill from cell k: among the neighbours on a cheapest way from k (their cost plus the
     // step into them is k's), the one nearest the goal (straighter paths); -1 when there is none.
-    int downhill(const std::vector<int>& steps, int k, Vec2 goal) const {
+    int downhill(const RouteField& steps, int k, Vec2 goal) const {
         int next = -1;
         const RouteClearance r = route();
         detail::for_each_neighbour(grid_.n, k, [&](int k2) {
@@ -3173,7 +3196,7 @@ private:
         const int start = grid.index(a.pos), goal = grid.index(a.goal);
         const RouteClearance route = prm_.route();
         // The heuristic: the wavefront, or the Chebyshev steps when the straight way is open.
-        const std::vector<int>* field = guide_.straight(map, a.pos, a.goal) ? nullptr : &guide_.steps_to(map, a.goal);
+        const RouteField* field = guide_.straight(map, a.pos, a.goal) ? nullptr : &guide_.steps_to(map, a.goal);
         auto h = [&](int c) { return (float)std::max(field ? (*field)[c] : -1, chebyshev(n, c, goal)); };
         // A start pushed into the clearance band may move through cells no worse than its own.
         const float floor_clear = std::min((float)route.min, grid.clear[start]) - 1e-6f;

@@ -160,7 +160,8 @@ TEST_CASE("routing: the expert's and the route guide's workspace stay within the
     for (int t = 0; t < 12; ++t) w.step(expert.act(w));
     const ClearanceGrid& g = expert.grid();
     CHECK(g.n == 1389);  // cells of 0.036 at half-size 25 (no coarsening)
-    const size_t grid_bytes = (size_t)g.n * g.n * sizeof(float), field_bytes = (size_t)g.n * g.n * sizeof(int);
+    // A field of this world's routes fits 2 bytes a cell (RouteField).
+    const size_t grid_bytes = (size_t)g.n * g.n * sizeof(float), field_bytes = (size_t)g.n * g.n * sizeof(uint16_t);
     const ExpertParams ep;
     const size_t states = 8 * (size_t)ep.max_expansions + 1;
     const size_t search_bound = 48 * states;  // nodes (16 bytes, capacity <= 2x) + table (4 bytes, <= 4x)
@@ -180,4 +181,32 @@ TEST_CASE("routing: the expert's and the route guide's workspace stay within the
     CHECK(guide.fields_cached() <= holds);
     CHECK(guide.fields_cached() >= holds - 1);
     CHECK(guide.workspace_bytes() <= grid_bytes + RouteGuide::kFieldCacheBytes);
+}
+
+TEST_CASE("routing: a cached field reads back its wavefront in 2 bytes a cell, or 4 when a cost reaches 65535") {
+    // The guide's cached field of a warehouse goal is the wavefront, cell for cell.
+    const WorldMap map = warehouse_map(8);
+    Rng rng(3);
+    const Vec2 goal = aisle_point(8, rng);
+    RouteGuide guide;
+    const RouteField& field = guide.steps_to(map, goal);
+    const ClearanceGrid& g = guide.grid();
+    const std::vector<int> steps = wavefront(g, g.index(goal), guide.route());
+    REQUIRE(field.size() == steps.size());
+    size_t differ = 0, unreachable = 0;
+    for (size_t k = 0; k < steps.size(); ++k) differ += field[k] != steps[k], unreachable += steps[k] < 0;
+    CHECK(differ == 0);
+    CHECK(unreachable > 0);  // the shelves' cells: -1 survives the 2-byte form
+    CHECK(field.bytes() == steps.size() * sizeof(uint16_t));
+    // A cost of 65535 or more keeps 4 bytes a cell (a 2-byte form would clip it).
+    const RouteField wide(std::vector<int>{0, -1, 65535, 70000});
+    CHECK(wide[0] == 0);
+    CHECK(wide[1] == -1);
+    CHECK(wide[2] == 65535);
+    CHECK(wide[3] == 70000);
+    CHECK(wide.bytes() == 4 * sizeof(int));
+    const RouteField narrow(std::vector<int>{0, -1, 65534});
+    CHECK(narrow[2] == 65534);
+    CHECK(narrow[1] == -1);
+    CHECK(narrow.bytes() == 3 * sizeof(uint16_t));
 }
