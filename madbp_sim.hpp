@@ -26,7 +26,10 @@
 //        is clear (straight(), steps_to(), workspace_bytes()); GuidedExpert plans on a RouteGuide
 //        (ExpertParams::min_clear, narrow_cost) with a sparse space-time A* and bucketed
 //        reservations, and its plans start from the robot's position. RouteField: a cached
-//        wavefront in 2 bytes a cell (4 only when a cost reaches 65535); steps_to() returns one.
+//        wavefront in 2 bytes a cell (4 only when a cost reaches 65535), whole or, by default, a
+//        band of tiles around one robot's route (RouteGuide::band = 32 cells; the expert: 0),
+//        made again when a walk reads past it, so routes are those of whole fields; steps_to()
+//        returns a whole one.
 //   0.3  PassageControl and its parameters move to madbp.hpp (the planner's traffic conventions).
 //        ClearanceGrid moves to Section 2; ReachGrid is gone (detail::all_reachable on its layout).
 //        movingai_scene / load_movingai_scene: MovingAI MAPF benchmark maps and scenarios as scenes.
@@ -304,6 +307,24 @@ inline double static_clearance(const WorldMap& map, Vec2 p, Vec2* away = nullptr
     for_each_surface(map, p, [&](double d, Vec2 a) { if (d < best) { best = d; dir = a; } });
     if (away) *away = dir;
     return best;
+}
+
+// The obstacles of `map` within `margin` of the rectangle [lo, hi], into `near` (same walls;
+// its vectors keep their capacity). For a point q in the rectangle and t <= margin,
+// static_clearance(near, q) < t exactly when static_clearance(map, q) < t: every obstacle left
+// out is farther than margin (+ 1e-9, for rounding) from all of the rectangle. Queries over a small area of a large
+// map (a robot's crop, a line of sight) then cost its nearby obstacles, not all of them.
+inline void obstacles_near(const WorldMap& map, Vec2 lo, Vec2 hi, double margin, WorldMap& near) {
+    near.half_size = map.half_size;
+    near.discs.clear();
+    near.boxes.clear();
+    const Box area{lo, hi};
+    for (const Disc& o : map.discs)
+        if (norm(o.c - closest_point(area, o.c)) - o.r <= margin + 1e-9) near.discs.push_back(o);
+    for (const Box& b : map.boxes) {
+        const double gx = std::max({0.0, b.lo.x - hi.x, lo.x - b.hi.x}), gy = std::max({0.0, b.lo.y - hi.y, lo.y - b.hi.y});
+        if (std::hypot(gx, gy) <= margin + 1e-9) near.boxes.push_back(b);
+    }
 }
 
 // True when `p` lies inside an obstacle (not the border walls), or outside the world.
@@ -1080,10 +1101,14 @@ inline Grid occupancy_grid(const World& world, int size = 32, bool agents = fals
 // missed) or it lies beyond the walls.
 inline void local_crop(const WorldMap& map, Vec2 p, int Gl, double extent, float* out) {
     const double w = 2 * extent / Gl;
+    // The obstacles near the crop only (the same cells: obstacles_near), kept per thread so a
+    // crop allocates nothing once the scratch has grown.
+    thread_local WorldMap near;
+    obstacles_near(map, {p.x - extent, p.y - extent}, {p.x + extent, p.y + extent}, 0.5 * w, near);
     for (int row = 0; row < Gl; ++row)
         for (int col = 0; col < Gl; ++col) {
             const Vec2 c{p.x - extent + (col + 0.5) * w, p.y - extent + (row + 0.5) * w};
-            out[row * Gl + col] = static_clearance(map, c) < 0.5 * w ? 1.0f : 0.0f;
+            out[row * Gl + col] = static_clearance(near, c) < 0.5 * w ? 1.0f : 0.0f;
         }
 }
 
@@ -2669,32 +2694,77 @@ inline std::vector<int> wavefront(const ClearanceGrid& cg, int goal_cell, double
 // A route may be asked to keep out of some cells (ClosedCells: a corridor others are using; the
 // walk, the view and the wavefront then avoid them).
 // Memory: the grid (4 bytes a cell, <= kRouteMaxGridSide^2) plus wavefronts (RouteField: 2 bytes
-// a cell each) up to kFieldCacheBytes; beyond, the least recently used ones are dropped.
+// a cell, of the tiles within `band` cells of a robot's route: about 60 KB a robot in a world of
+// half-size 10) up to kFieldCacheBytes; beyond, the least recently used ones are dropped. Making
+// a field takes a whole-grid wavefront (4 bytes a cell) for a moment.
 struct RouteGoal {
     Vec2 goal;           // where to head: the goal itself or a subgoal on the way
     bool final = true;   // goal is the robot's real goal (the planner may pin the window's end to it)
 };
 // A cached wavefront: the route cost per cell, -1 where the goal cannot be reached. Stored in 2
-// bytes a cell when every cost is below 65535 (any world but very long narrow routes: a cost is
-// at most 1 + narrow_cost a cell), else in 4; either way it reads back the wavefront's ints, so
-// the routes are the same. A guide's cache then holds twice the goals in the same bytes.
+// bytes a cell when every cost is below 65535 (a cost is at most 1 + narrow_cost a cell), else
+// in 4; and either for the whole grid or, for a band field, only for the tiles of kTile x kTile
+// cells within `band` cells of one route's cells: reading a cell outside them gives kAbsent. What
+// is held reads back the wavefront's own ints, so a walk that reads only held cells takes the
+// route a whole field gives (RouteGuide makes a band again when a walk reads past it).
 class RouteField {
 public:
+    static constexpr int kAbsent = -2;  // a cell a band field does not hold
+    static constexpr int kTile = 16;    // tile side, cells
     RouteField() = default;
-    explicit RouteField(std::vector<int>&& steps) {
-        const int top = steps.empty() ? 0 : *std::max_element(steps.begin(), steps.end());
-        if (top >= kNone) { wide_ = std::move(steps); return; }
-        narrow_.resize(steps.size());
-        for (size_t k = 0; k < steps.size(); ++k) narrow_[k] = steps[k] < 0 ? kNone : (uint16_t)steps[k];
+    // `steps`: the wavefront of an n x n grid; `route` (with band > 0): the cells to keep `band` around.
+    RouteField(const std::vector<int>& steps, int n, const std::vector<int>* route = nullptr, int band = 0) : n_(n) {
+        const std::vector<int>* kept = &steps;
+        std::vector<int> tiled;
+        if (route && band > 0) {
+            side_ = (n + kTile - 1) / kTile;
+            tile_of_.assign((size_t)side_ * side_, -1);
+            int tiles = 0;
+            for (int k : *route) {
+                const int r = k / n, c = k % n;
+                for (int tr = std::max(0, r - band) / kTile; tr <= std::min(n - 1, r + band) / kTile; ++tr)
+                    for (int tc = std::max(0, c - band) / kTile; tc <= std::min(n - 1, c + band) / kTile; ++tc)
+                        if (tile_of_[(size_t)tr * side_ + tc] < 0) tile_of_[(size_t)tr * side_ + tc] = tiles++;
+            }
+            if ((size_t)tiles == tile_of_.size()) {
+                tile_of_.clear();  // every tile: the whole grid is smaller
+            } else {
+                tiled.assign((size_t)tiles * kTile * kTile, -1);  // cells past the grid's edge stay -1, never read
+                for (int tr = 0; tr < side_; ++tr)
+                    for (int tc = 0; tc < side_; ++tc) {
+                        const int t = tile_of_[(size_t)tr * side_ + tc];
+                        if (t < 0) continue;
+                        for (int r = tr * kTile; r < std::min(n, (tr + 1) * kTile); ++r)
+                            for (int c = tc * kTile; c < std::min(n, (tc + 1) * kTile); ++c)
+                                tiled[(size_t)t * kTile * kTile + (r % kTile) * kTile + c % kTile] = steps[(size_t)r * n + c];
+                    }
+                kept = &tiled;
+            }
+        }
+        const int top = kept->empty() ? 0 : *std::max_element(kept->begin(), kept->end());
+        if (top >= kNone) {
+            wide_ = *kept;
+            return;
+        }
+        narrow_.resize(kept->size());
+        for (size_t i = 0; i < kept->size(); ++i) narrow_[i] = (*kept)[i] < 0 ? kNone : (uint16_t)(*kept)[i];
     }
-    int operator[](size_t k) const { return wide_.empty() ? (narrow_[k] == kNone ? -1 : narrow_[k]) : wide_[k]; }
-    size_t size() const { return wide_.empty() ? narrow_.size() : wide_.size(); }
-    size_t bytes() const { return narrow_.capacity() * sizeof(uint16_t) + wide_.capacity() * sizeof(int); }
+    int operator[](size_t k) const {
+        if (tile_of_.empty()) return value(k);
+        const int r = (int)(k / n_), c = (int)(k % n_);
+        const int t = tile_of_[(size_t)(r / kTile) * side_ + c / kTile];
+        return t < 0 ? kAbsent : value((size_t)t * kTile * kTile + (r % kTile) * kTile + c % kTile);
+    }
+    bool whole() const { return tile_of_.empty(); }
+    size_t bytes() const { return narrow_.capacity() * sizeof(uint16_t) + wide_.capacity() * sizeof(int) + tile_of_.capacity() * sizeof(int); }
 
 private:
     static constexpr int kNone = 0xFFFF;  // unreachable, in the 2-byte form
+    int n_ = 0, side_ = 0;                // grid side; tiles a side (band fields)
+    std::vector<int> tile_of_;            // band fields: tile -> its place in the values, -1 not held
     std::vector<uint16_t> narrow_;
     std::vector<int> wide_;
+    int value(size_t i) const { return wide_.empty() ? (narrow_[i] == kNone ? -1 : narrow_[i]) : wide_[i]; }
 };
 class RouteGuide {
 public:
@@ -2704,6 +2774,10 @@ public:
     double min_clear = 0.102;   // and passes cells with this much (RouteClearance::min)
     int narrow_cost = 8;        // extra cost of a step into a cell below `clear` (RouteClearance::narrow_cost)
     double view_clear = 0.1;    // a subgoal is visible when the segment to it keeps this clearance (robot radius)
+    // Cells either side of a robot's route a cached field keeps (RouteField's band; 0: the whole
+    // grid; else >= 2, the cells a walk reads around its start). Routes are the same either way:
+    // a walk that reads past the band makes it again around the walk's own route.
+    int band = 32;
 
     RouteClearance route() const { return {min_clear, clear, narrow_cost}; }
 
@@ -2718,33 +2792,36 @@ public:
         // not in view, the walk decides: with the defaults, clear > view_clear, that straight way
         // is not clear either, and a point `distance` along it would pass the goal.)
         if (!within && visible(p, goal, closed, clear)) return {p + (goal - p) * (distance / norm(goal - p)), false};
-        const RouteField& steps = field(grid_.index(goal), closed);
-        int k = start_cell(steps, grid_.index(p));
-        if (k < 0) return {goal, true};  // no route known from here: head straight for the goal
-        Vec2 sub = grid_.centre(k);
-        while (steps[k] > 0) {
-            const int next = downhill(steps, k, goal);
-            if (next < 0) break;
-            k = next;
-            const Vec2 c = steps[k] == 0 ? goal : grid_.centre(k);
-            if (norm(c - p) > distance || !visible(p, c, closed)) break;
-            sub = c;
-            if (steps[k] == 0) return {goal, true};
-        }
-        return {sub, false};
+        return walk_field(grid_.index(p), goal, closed, [&](const RouteField& steps) -> RouteGoal {
+            int k = start_cell(steps, grid_.index(p));
+            if (k < 0) return {goal, true};  // no route known from here: head straight for the goal
+            Vec2 sub = grid_.centre(k);
+            while (steps[k] > 0) {
+                const int next = downhill(steps, k, goal);
+                if (next < 0) break;
+                k = next;
+                const Vec2 c = steps[k] == 0 ? goal : grid_.centre(k);
+                if (norm(c - p) > distance || !visible(p, c, closed)) break;
+                sub = c;
+                if (steps[k] == 0) return {goal, true};
+            }
+            return {sub, false};
+        });
     }
     // The route's cells (grid() indices) from p toward goal: p's cell (or its best reachable
     // neighbour when p is too close to the map), then downhill to the goal's cell, at most
     // `max_cells` of them; empty when no route is known.
     void route_cells(const WorldMap& map, Vec2 p, Vec2 goal, int max_cells, std::vector<int>& cells) {
         set_map(map);
-        cells.clear();
-        const RouteField& steps = field(grid_.index(goal));
-        int k = start_cell(steps, grid_.index(p));
-        while (k >= 0 && (int)cells.size() < max_cells) {
-            cells.push_back(k);
-            k = steps[k] > 0 ? downhill(steps, k, goal) : -1;
-        }
+        walk_field(grid_.index(p), goal, {}, [&](const RouteField& steps) {
+            cells.clear();
+            int k = start_cell(steps, grid_.index(p));
+            while (k >= 0 && (int)cells.size() < max_cells) {
+                cells.push_back(k);
+                k = steps[k] > 0 ? downhill(steps, k, goal) : -1;
+            }
+            return 0;
+        });
     }
     // The segment a-b keeps view_clear from `map` (checked every half cell) and out of `closed`.
     bool in_view(const WorldMap& map, Vec2 a, Vec2 b, ClosedCells closed = {}) {
@@ -2761,16 +2838,17 @@ public:
     }
     const ClearanceGrid& grid() const { return grid_; }
     const ClearanceGrid& grid(const WorldMap& map) { set_map(map); return grid_; }  // the grid made for `map`
-    // The wavefront (route cost per cell, -1: unreachable) of goal's cell on `map`; valid until
-    // the next call that may make a field.
-    const RouteField& steps_to(const WorldMap& map, Vec2 goal) { set_map(map); return field(grid_.index(goal)); }
+    // The wavefront (route cost per cell, -1: unreachable) of goal's cell on `map`, over the whole
+    // grid whatever `band`; valid until the next call that may make a field.
+    const RouteField& steps_to(const WorldMap& map, Vec2 goal) { set_map(map); return field(grid_.index(goal), {}, -1, goal, false); }
     // Wavefront steps from p's cell to goal's, the guided expert's priority key (its plan cells
     // and clearance; a step into a narrow cell counts 1 + narrow_cost); kRouteUnreachable when no
     // route is known.
     static constexpr int kRouteUnreachable = 1 << 20;
     int route_steps(const WorldMap& map, Vec2 p, Vec2 goal) {
         set_map(map);
-        const int s = field(grid_.index(goal))[grid_.index(p)];
+        const int k = grid_.index(p);
+        const int s = walk_field(k, goal, {}, [&](const RouteField& steps) { return read(steps, k); });
         return s >= 0 ? s : kRouteUnreachable;
     }
     // Steps of the walk subgoal() takes from p to goal keeping out of `closed` (from the cell it
@@ -2778,9 +2856,10 @@ public:
     int walk_steps(const WorldMap& map, Vec2 p, Vec2 goal, ClosedCells closed) {
         set_map(map);
         check(closed);
-        const RouteField& steps = field(grid_.index(goal), closed);
-        const int k = start_cell(steps, grid_.index(p));
-        return k >= 0 ? steps[k] : kRouteUnreachable;
+        return walk_field(grid_.index(p), goal, closed, [&](const RouteField& steps) {
+            const int k = start_cell(steps, grid_.index(p));
+            return k >= 0 ? steps[k] : kRouteUnreachable;
+        });
     }
     // Bytes held: the grid and the cached wavefronts (capacities), <= grid + kFieldCacheBytes
     // (one field more while it is being made).
@@ -2798,23 +2877,39 @@ private:
         RouteField steps;
         uint64_t used = 0;  // when last asked for (least recently used goes first)
     };
-    std::map<std::pair<int, uint64_t>, Field> fields_;  // (goal cell, closed key) -> wavefront
+    std::map<std::tuple<int, uint64_t, bool>, Field> fields_;  // (goal cell, closed key, whole) -> wavefront
     uint64_t clock_ = 0;
     size_t field_bytes_ = 0;
+    bool read_absent_ = false;  // a walk read a cell its band field does not hold
+    WorldMap near_;             // visible()'s obstacles near its segment
 
     void set_map(const WorldMap& map) {
         if (grid_.n > 0 && map == map_) return;
         route().check("RouteGuide");
+        if (band != 0 && (band < 2 || band > kRouteMaxGridSide))
+            throw std::invalid_argument("RouteGuide.band: must be 0 (whole grid) or in [2, " + std::to_string(kRouteMaxGridSide) + "] (got " + std::to_string(band) + ")");
         grid_ = ClearanceGrid(map, cell);
         map_ = map;
         fields_.clear();
         field_bytes_ = 0;
     }
-    const RouteField& field(int goal_cell, ClosedCells closed = {}) {
-        const std::pair<int, uint64_t> key{goal_cell, closed.any() ? closed.key : 0};
+    // The field of goal_cell keeping out of `closed`, cached: a band field around the route from
+    // cell `from` (from < 0 or band == 0: the whole grid); `remake` makes a cached band again
+    // around from's route.
+    const RouteField& field(int goal_cell, ClosedCells closed, int from, Vec2 goal, bool remake) {
+        const bool whole = band == 0 || from < 0;
+        const std::tuple<int, uint64_t, bool> key{goal_cell, closed.any() ? closed.key : 0, whole};
         auto it = fields_.find(key);
+        if (it != fields_.end() && remake) {
+            field_bytes_ -= it->second.steps.bytes();
+            fields_.erase(it);
+            it = fields_.end();
+        }
         if (it == fields_.end()) {
-            RouteField made(wavefront(grid_, goal_cell, route(), closed));
+            const std::vector<int> steps = wavefront(grid_, goal_cell, route(), closed);
+            std::vector<int> cells;
+            if (!whole) walked_cells(steps, from, goal, cells);
+            RouteField made(steps, grid_.n, whole ? nullptr : &cells, band);
             while (!fields_.empty() && field_bytes_ + made.bytes() > kFieldCacheBytes) {
                 auto oldest = fields_.begin();
                 for (auto f = fields_.begin(); f != fields_.end(); ++f) if (f->second.used < oldest->second.used) oldest = f;
@@ -2827,6 +2922,36 @@ private:
         it->second.used = ++clock_;
         return it->second.steps;
     }
+    // walk(field) on goal's field for a walk from cell `from`. When the walk read a cell its band
+    // field does not hold, the band is made again around the route from `from` (it then holds
+    // every cell that walk reads: the walk's cells and their neighbours, and 2 cells around its
+    // start) and walked again: the result is the whole field's.
+    template <class Walk>
+    auto walk_field(int from, Vec2 goal, ClosedCells closed, Walk walk) -> decltype(walk(RouteField{})) {
+        const int goal_cell = grid_.index(goal);
+        read_absent_ = false;
+        auto result = walk(field(goal_cell, closed, from, goal, false));
+        if (!read_absent_) return result;
+        read_absent_ = false;
+        return walk(field(goal_cell, closed, from, goal, true));
+    }
+    // The cells of the walk from cell `from` on a whole wavefront: from, then start_cell's and
+    // downhill to the goal (the band's route).
+    void walked_cells(const std::vector<int>& steps, int from, Vec2 goal, std::vector<int>& cells) {
+        cells.assign(1, from);
+        int k = start_cell(steps, from);
+        for (size_t guard = 0; k >= 0 && guard < steps.size(); ++guard) {
+            cells.push_back(k);
+            k = steps[k] > 0 ? downhill(steps, k, goal) : -1;
+        }
+    }
+    // steps[k], noting a read past a band field.
+    int read(const RouteField& steps, int k) {
+        const int v = steps[k];
+        if (v == RouteField::kAbsent) read_absent_ = true;
+        return v;
+    }
+    int read(const std::vector<int>& steps, int k) const { return steps[k]; }
     void check(ClosedCells closed) const {
         if (closed.label && closed.label->size() != (size_t)grid_.n * grid_.n)
             throw std::invalid_argument("ClosedCells.label: needs one entry per cell of the guide's grid (" + std::to_string(grid_.n * grid_.n) +
@@ -2838,16 +2963,22 @@ private:
     // a sample whose cell keeps view_clear + half a cell diagonal needs none: clearance changes
     // no faster than position, so long views over open ground cost grid reads only.
     // `clearance`: view_clear, or the route's preferred clearance for the straight way.
-    bool visible(Vec2 a, Vec2 b, ClosedCells closed = {}, double clearance = -1) const {
+    bool visible(Vec2 a, Vec2 b, ClosedCells closed = {}, double clearance = -1) {
         if (clearance < 0) clearance = view_clear;
         const int samples = 1 + (int)std::ceil(norm(b - a) / (0.5 * grid_.cell));
         const double sure = clearance + 0.71 * grid_.cell;
+        bool near_made = false;  // the obstacles near the segment (obstacles_near), made at the first sample that needs them
         for (int i = 0; i <= samples; ++i) {
             const Vec2 q = a + (b - a) * ((double)i / samples);
             const int k = grid_.index(q);
             if (closed.closes(k)) return false;
             const bool inside = std::abs(q.x) < grid_.half && std::abs(q.y) < grid_.half;
-            if (!(inside && grid_.clear[k] >= sure) && static_clearance(map_, q) < clearance) return false;
+            if (inside && grid_.clear[k] >= sure) continue;
+            if (!near_made) {
+                obstacles_near(map_, {std::min(a.x, b.x), std::min(a.y, b.y)}, {std::max(a.x, b.x), std::max(a.y, b.y)}, clearance, near_);
+                near_made = true;
+            }
+            if (static_clearance(near_, q) < clearance) return false;
         }
         return true;
     }
@@ -2863,8 +2994,9 @@ private:
     }
     // Where a walk on `steps` starts from cell k: k, or when k is too close to the map the
     // reachable cell within 2 cells nearest the goal; -1 when there is none.
-    int start_cell(const RouteField& steps, int k) const {
-        if (steps[k] >= 0) return k;
+    template <class Steps>
+    int start_cell(const Steps& steps, int k) {
+        if (read(steps, k) >= 0) return k;
         const int n = grid_.n;
         int best = -1;
         for (int dr = -2; dr <= 2; ++dr)
@@ -2872,17 +3004,20 @@ private:
                 const int r2 = k / n + dr, c2 = k % n + dc;
                 if (r2 < 0 || r2 >= n || c2 < 0 || c2 >= n) continue;
                 const int k2 = r2 * n + c2;
-                if (steps[k2] >= 0 && (best < 0 || steps[k2] < steps[best])) best = k2;
+                if (read(steps, k2) >= 0 && (best < 0 || steps[k2] < steps[best])) best = k2;
             }
         return best;
     }
     // Downhill from cell k: among the neighbours on a cheapest way from k (their cost plus the
     // step into them is k's), the one nearest the goal (straighter paths); -1 when there is none.
-    int downhill(const RouteField& steps, int k, Vec2 goal) const {
+    template <class Steps>
+    int downhill(const Steps& steps, int k, Vec2 goal) {
         int next = -1;
         const RouteClearance r = route();
+        const int here = read(steps, k);
         detail::for_each_neighbour(grid_.n, k, [&](int k2) {
-            if (steps[k2] >= 0 && steps[k2] + r.step_cost(grid_.clear[k2]) == steps[k] &&
+            const int v = read(steps, k2);
+            if (v >= 0 && v + r.step_cost(grid_.clear[k2]) == here &&
                 (next < 0 || norm(grid_.centre(k2) - goal) < norm(grid_.centre(next) - goal)))
                 next = k2;
         });
@@ -3054,6 +3189,7 @@ public:
         guide_.clear = prm_.inflate;
         guide_.min_clear = prm_.min_clear;
         guide_.narrow_cost = prm_.narrow_cost;
+        guide_.band = 0;  // its A* heuristic reads the field anywhere: whole fields
         guide_.grid(map);
     }
 

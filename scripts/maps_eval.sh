@@ -16,7 +16,8 @@
 # Settings (environment): MAPS (default: every <map>.map in MAP_DIR, real or -gen), CELLS, AGENTS
 # (lists), SEEDS="first last", METHODS, MADBP (the tool), JOBS (episodes in parallel, xargs -P),
 # OUT (episode TSV), MAP_DIR (the .map files), SCEN_DIR (the .scen files; default MAP_DIR),
-# EVAL_FLAGS (more `madbp eval` flags, all methods).
+# EVAL_FLAGS (more `madbp eval` flags, all methods), WORK_DIR (scenes and one row file per
+# episode, kept after the run; default a temporary folder, removed).
 # `scripts/maps_eval.sh --summary [FILE]` prints the summary of an existing TSV.
 set -euo pipefail
 
@@ -64,8 +65,13 @@ if [[ ${1:-} == --summary ]]; then summary "${2:-$OUT}"; exit 0; fi
 [[ -x $MADBP ]] || { echo "maps_eval: $MADBP is not an executable (set MADBP=path/to/madbp)" >&2; exit 2; }
 read -r SEED_FIRST SEED_LAST <<< "$SEEDS"
 SEED_LAST=${SEED_LAST:-$SEED_FIRST}
-WORK=$(mktemp -d "${TMPDIR:-/tmp}/maps_eval.XXXXXX")
-trap 'rm -rf "$WORK"' EXIT
+if [[ -n ${WORK_DIR:-} ]]; then  # kept: an interrupted run's rows stay in $WORK_DIR/rows
+  WORK=$WORK_DIR
+  rm -rf "$WORK"
+else
+  WORK=$(mktemp -d "${TMPDIR:-/tmp}/maps_eval.XXXXXX")
+  trap 'rm -rf "$WORK"' EXIT
+fi
 mkdir -p "$WORK/scenes" "$WORK/rows" "$(dirname "$OUT")"
 
 # The scenario files of a map, in order: random ones by number, else even ones.
@@ -134,7 +140,9 @@ for map in $MAPS; do
   done
 done
 
-# 2. Episodes, JOBS at a time; each writes one row file (a failed eval writes an eval-error row).
+# 2. Episodes, JOBS at a time, larger teams first (they take longest: a parallel run then ends
+# with short episodes, not one long one); each writes one row file (a failed eval writes an
+# eval-error row).
 run_one() {
   local map=$1 cell=$2 n=$3 s=$4 method=$5 scene=$6 json success collisions steps plan_ms
   # shellcheck disable=SC2086  # EVAL_FLAGS is a list of flags
@@ -154,7 +162,7 @@ export MADBP EVAL_FLAGS WORK
 njobs=$(wc -l < "$WORK/jobs")
 echo "maps_eval: $njobs episodes, $JOBS at a time" >&2
 if (( njobs > 0 )); then
-  xargs -P "$JOBS" -L 1 bash -c 'run_one "$@"' _ < "$WORK/jobs"
+  sort -s -k3,3nr "$WORK/jobs" | xargs -P "$JOBS" -L 1 bash -c 'run_one "$@"' _
 fi
 
 # 3. The episode table (sorted like the summary) and the summary.

@@ -170,8 +170,10 @@ TEST_CASE("routing: the expert's and the route guide's workspace stay within the
     // The dense space-time arrays of before 0.4 held (T + 1) x cells bytes of reservations alone.
     const size_t dense = (size_t)(kExpertMaxHorizon + ep.extra_horizon + 1) * g.n * g.n;
     CHECK(expert.workspace_bytes() < dense / 2);
-    // A route guide asked for more goals than its cache holds drops the least recently used.
+    // A route guide asked for more goals than its cache holds drops the least recently used
+    // (whole fields here, of a known size).
     RouteGuide guide;
+    guide.band = 0;
     const size_t holds = RouteGuide::kFieldCacheBytes / field_bytes;
     Rng rng2(8);
     for (size_t i = 0; i < holds + 4; ++i) {
@@ -184,7 +186,7 @@ TEST_CASE("routing: the expert's and the route guide's workspace stay within the
 }
 
 TEST_CASE("routing: a cached field reads back its wavefront in 2 bytes a cell, or 4 when a cost reaches 65535") {
-    // The guide's cached field of a warehouse goal is the wavefront, cell for cell.
+    // The guide's whole field of a warehouse goal is the wavefront, cell for cell.
     const WorldMap map = warehouse_map(8);
     Rng rng(3);
     const Vec2 goal = aisle_point(8, rng);
@@ -192,21 +194,77 @@ TEST_CASE("routing: a cached field reads back its wavefront in 2 bytes a cell, o
     const RouteField& field = guide.steps_to(map, goal);
     const ClearanceGrid& g = guide.grid();
     const std::vector<int> steps = wavefront(g, g.index(goal), guide.route());
-    REQUIRE(field.size() == steps.size());
     size_t differ = 0, unreachable = 0;
     for (size_t k = 0; k < steps.size(); ++k) differ += field[k] != steps[k], unreachable += steps[k] < 0;
     CHECK(differ == 0);
     CHECK(unreachable > 0);  // the shelves' cells: -1 survives the 2-byte form
+    CHECK(field.whole());
     CHECK(field.bytes() == steps.size() * sizeof(uint16_t));
     // A cost of 65535 or more keeps 4 bytes a cell (a 2-byte form would clip it).
-    const RouteField wide(std::vector<int>{0, -1, 65535, 70000});
+    const RouteField wide(std::vector<int>{0, -1, 65535, 70000}, 2);
     CHECK(wide[0] == 0);
     CHECK(wide[1] == -1);
     CHECK(wide[2] == 65535);
     CHECK(wide[3] == 70000);
     CHECK(wide.bytes() == 4 * sizeof(int));
-    const RouteField narrow(std::vector<int>{0, -1, 65534});
+    const RouteField narrow(std::vector<int>{0, -1, 65534, 7}, 2);
     CHECK(narrow[2] == 65534);
     CHECK(narrow[1] == -1);
-    CHECK(narrow.bytes() == 3 * sizeof(uint16_t));
+    CHECK(narrow.bytes() == 4 * sizeof(uint16_t));
+    // A band field holds the tiles within `band` cells of its route, exactly, and nothing else.
+    const int n = g.n, from = g.index(Vec2{-goal.x, -goal.y});
+    const std::vector<int> route{from};
+    const RouteField band(steps, n, &route, 20);
+    CHECK_FALSE(band.whole());
+    CHECK(band.bytes() < field.bytes() / 10);
+    const int r0 = from / n, c0 = from % n;
+    size_t held = 0;
+    for (int k = 0; k < n * n; ++k) {
+        const int dr = std::abs(k / n - r0), dc = std::abs(k % n - c0);
+        if (dr <= 20 && dc <= 20) CHECK(band[k] == steps[k]);  // within the band: the wavefront's value
+        if (band[k] != RouteField::kAbsent) {
+            CHECK(band[k] == steps[k]);
+            ++held;
+        }
+        if (dr > 20 + RouteField::kTile || dc > 20 + RouteField::kTile) CHECK(band[k] == RouteField::kAbsent);
+    }
+    CHECK(held >= 41 * 41);                                           // the band's square
+    CHECK(held <= (41 + 2 * RouteField::kTile) * (41 + 2 * RouteField::kTile));  // and the tiles it touches
+}
+
+TEST_CASE("routing: band fields give the routes whole fields give, in a fraction of the bytes") {
+    // Robots walk their routes across a warehouse, some pushed off them; a guide with band fields
+    // (the default) and one with whole fields answer every query alike.
+    const double half = 10;
+    const WorldMap map = warehouse_map(half);
+    RouteGuide banded, whole;
+    whole.band = 0;
+    REQUIRE(banded.band > 0);
+    Rng rng(11);
+    int subgoals = 0, pushed = 0;
+    for (int robot = 0; robot < 12; ++robot) {
+        Vec2 p = aisle_point(half, rng);
+        const Vec2 goal = aisle_point(half, rng);
+        for (int step = 0; step < 60; ++step) {
+            const RouteGoal a = banded.subgoal(map, p, goal, 0.8), b = whole.subgoal(map, p, goal, 0.8);
+            CHECK(a.goal.x == b.goal.x);
+            CHECK(a.goal.y == b.goal.y);
+            CHECK(a.final == b.final);
+            CHECK(banded.route_steps(map, p, goal) == whole.route_steps(map, p, goal));
+            std::vector<int> ca, cb;
+            banded.route_cells(map, p, goal, 200, ca);
+            whole.route_cells(map, p, goal, 200, cb);
+            CHECK(ca == cb);
+            ++subgoals;
+            if (a.final) break;
+            p = p + (a.goal - p) * std::min(1.0, 0.3 / norm(a.goal - p));
+            if (step % 15 == 14) {  // pushed off the route, beyond the band
+                const Vec2 q = aisle_point(half, rng);
+                if (banded.route_steps(map, q, goal) < RouteGuide::kRouteUnreachable) p = q, ++pushed;
+            }
+        }
+    }
+    CHECK(subgoals > 100);
+    CHECK(pushed > 5);
+    CHECK(banded.workspace_bytes() < whole.workspace_bytes() / 2);
 }

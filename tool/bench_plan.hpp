@@ -68,8 +68,11 @@ inline int bench_plan(Args& a) {
     // The same first plans again on this many threads (set_num_threads), beside one thread's.
     const int threads = (int)a.integer("--threads", 2, 1, 256);
     const bool expert_row = !a.flag("--no-expert");  // the guided expert takes seconds per plan beyond 128 robots
+    // The worlds' map: empty (the default), or obstacles, where robots route around the map
+    // (RouteGuide's fields are made in the first plans, then cached).
+    const std::string map = a.str("--map", "empty");
     a.finish();
-    for (long n : teams) check_random_world("empty", n, seed, half_sizes.of(n));  // before the long run
+    for (long n : teams) check_random_world(map, n, seed, half_sizes.of(n));  // before the long run
     if (choice.decentralised) throw std::invalid_argument("--decentralised: bench --plan times a team's plans (plan_robot: --agents 1)");
     madbp::set_num_threads(1);  // SPEC 9: one core
     const std::string& model_path = choice.model_path;
@@ -82,7 +85,7 @@ inline int bench_plan(Args& a) {
     if (!json)
         std::printf("plan bench: %s, S = %d, guidance %g, keep-right %g, candidates %d (plans of <= %d robot windows %d), warm start %d, line start %d, one thread;\n"
                     "Eigen GEMM %dx%d * %dx%d: %.1f GFLOP/s\n"
-                    "random empty worlds: %s; scenes x robots\n"
+                    "random %s worlds: %s; scenes x robots\n"
                     "per scene (x candidates) as the planner chose (automatic neighbourhoods); ms/plan: a first plan (line start: the\n"
                     "last W steps from straight lines; else all S); warm_ms: a plan follower.replan_every steps after the last, warm-started;\n"
                     "new_ms: a first plan of a new world on the same map (new goals: their goal fields are made);\n"
@@ -92,7 +95,7 @@ inline int bench_plan(Args& a) {
                     "%4s %6s %10s %10s %10s %10s %10s %8s %9s %6s %9s %6s\n",
                     model_path.c_str(), S, sc.guidance, sc.keep_right, sc.candidates,
                     madbp::kSmallPlanWindows, choice.settings.sampler.small_plan_candidates, sc.warm_start, choice.settings.sampler.line_start ? 1 : 0, config.channels[0], config.dim * config.kernel, config.dim * config.kernel, config.horizon * 8, gemm,
-                    half_sizes.given > 0 ? ("half-size " + madbp::number_text(half_sizes.given)).c_str()
+                    map.c_str(), half_sizes.given > 0 ? ("half-size " + madbp::number_text(half_sizes.given)).c_str()
                                          : "half-size at constant density (1.2 up to 8 robots, 3.4 at 64, 13.6 at 1024)",
                     threads, threads, threads, "n",
                     "scenes", "ms/plan", "warm_ms", "new_ms", "expert_ms", "GFLOP/s", "of GEMM", "ms/robot", "growth",
@@ -106,7 +109,7 @@ inline int bench_plan(Args& a) {
         // DDIM steps of a first plan: with line start and warm start on, the last W, else all S.
         const int first_steps = choice.settings.sampler.line_start && sc.warm_starts() ? sc.warm_start : S;
         const double half_size = half_sizes.of(n);
-        madbp::World world = madbp::make_random_world("empty", (int)n, seed, half_size);
+        madbp::World world = madbp::make_random_world(map, (int)n, seed, half_size);
         madbp::Plan plan;
         // Plans done on a terminal's progress line: at 1024 robots a plan takes seconds. The
         // expert's run is the last unit.
@@ -141,7 +144,7 @@ inline int bench_plan(Args& a) {
         // first plan), the goal fields of the window cost's guidance included.
         double new_secs = 0;
         for (int i = 0; i < plans; ++i) {
-            const madbp::World fresh = madbp::make_random_world("empty", (int)n, seed + 1 + (uint64_t)i, half_size);
+            const madbp::World fresh = madbp::make_random_world(map, (int)n, seed + 1 + (uint64_t)i, half_size);
             auto f0 = std::chrono::steady_clock::now();
             planner.plan_into(fresh, plan);
             new_secs += std::chrono::duration<double>(std::chrono::steady_clock::now() - f0).count();
@@ -179,7 +182,7 @@ inline int bench_plan(Args& a) {
             robot_K = per_scene;
         }
         if (json)
-            std::printf("%s\n", Json().add("bench", "plan").add("agents", n).add("half_size", half_size).add("scenes", scenes).add("per_scene", per_scene).add("sample_steps", S)
+            std::printf("%s\n", Json().add("bench", "plan").add("map", map).add("agents", n).add("half_size", half_size).add("scenes", scenes).add("per_scene", per_scene).add("sample_steps", S)
                                     .add("guidance", sc.guidance).add("keep_right", sc.keep_right).add("candidates", drawn).add("warm_start", sc.warm_start).add("line_start", choice.settings.sampler.line_start ? 1 : 0).add("ms_per_plan", ms).add("warm_ms_per_plan", warm_ms).add("new_world_ms_per_plan", new_ms).add("expert_ms_per_plan", expert_ms).add("ms_per_robot", ms / n).add("growth", growth).add("threads", threads).add("threads_ms_per_plan", 1000 * threads_secs / plans).add("threads_speedup", secs / threads_secs)
                                     .add("gflops", rate).add("gemm_gflops", gemm).add("share_of_gemm", rate / gemm).line().c_str());
         else {

@@ -294,7 +294,8 @@ int cmd_bench(Args& a) {
             "                 (--model, --preset, --neighbours, --set; default the shipped model, tuned);\n"
             "                 ms/plan is a first plan, warm_ms one replan interval later; --threads T (default\n"
             "                 2): the first plans again on T threads, side by side; --no-expert: skip\n"
-            "                 the guided expert's column (seconds per plan beyond 128 robots)\n"
+            "                 the guided expert's column (seconds per plan beyond 128 robots);\n"
+            "                 --map empty|obstacles|barrier: the worlds' map (default empty)\n"
             "  --json         one JSON object per thread count\n");
         return 0;
     }
