@@ -147,8 +147,8 @@ mappo-models: $(BUILD)/madbp
 results: $(BUILD)/madbp
 	$(BUILD)/madbp eval --suite paper --threads 2 $(SUITE_FLAGS)
 
-# The MovingAI tuning maps of issue 46 (maps/movingai/README.md: every .map there, real or
-# generated -gen; a map without .scen files gets rows drawn per seed, `convert --random-scen`):
+# The MovingAI tuning maps of issue 46 (maps/movingai/README.md: every .map there; a map
+# without .scen files gets rows drawn per seed, `convert --random-scen`):
 # MA-DBP, the guided expert and the straight line at cell 0.3 and 0.25 with 4, 8, 16 and 32
 # robots, seeds 0-99 (hours on 2 cores;
 # not part of `make test`). One row per episode in results/maps/episodes.tsv, the summary in

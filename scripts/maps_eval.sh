@@ -9,11 +9,11 @@
 # files in order (<map>-random-1.scen, -random-2, ...; <map>-even-K.scen when there are no random
 # ones), never splitting a block of n rows over two files; when the files hold fewer than s+1 blocks
 # the blocks are reused (with a warning), so the seeds are then no longer distinct problems.
-# A map without scenario files (a generated <family>-gen map, or a real map whose .scen files are
-# not here) gets n rows drawn from seed s (`madbp convert --random-scen --seed s`): start and goal
-# in one component, distinct starts, distinct goals; each seed is its own problem.
+# A map without scenario files gets n rows drawn from seed s (`madbp convert --random-scen --seed
+# s`): start and goal in one component, distinct starts, distinct goals; each seed is its own
+# problem.
 #
-# Settings (environment): MAPS (default: every <map>.map in MAP_DIR, real or -gen), CELLS, AGENTS
+# Settings (environment): MAPS (default: every <map>.map in MAP_DIR), CELLS, AGENTS
 # (lists), SEEDS="first last", METHODS, MADBP (the tool), JOBS (episodes in parallel, xargs -P),
 # OUT (episode TSV), MAP_DIR (the .map files), SCEN_DIR (the .scen files; default MAP_DIR),
 # EVAL_FLAGS (more `madbp eval` flags, all methods), WORK_DIR (scenes and one row file per
@@ -85,7 +85,8 @@ scen_files() {
 }
 
 # One scene (map cell n seed, then the convert flags that pick its rows) and its episode jobs, one
-# line of $WORK/jobs per method; a failed convert writes a convert-error row per method instead.
+# line per method in $WORK/jobs.d/<scene>; a failed convert writes a convert-error row per method
+# instead.
 convert_scene() {
   local map=$1 cell=$2 n=$3 s=$4 scene method
   shift 4
@@ -100,12 +101,16 @@ convert_scene() {
     return 0
   fi
   for method in $METHODS; do
-    echo "$map $cell $n $s $method $scene" >> "$WORK/jobs"
-  done
+    echo "$map $cell $n $s $method $scene"
+  done > "$WORK/jobs.d/$map-c$cell-n$n-s$s"
 }
+# The scenes to make, one line each (convert_scene's arguments), made JOBS at a time below.
+plan_scene() { echo "$@" >> "$WORK/converts"; }
 
-# 1. Scenes (serial: a convert takes milliseconds). Each episode job is one line of $WORK/jobs.
-: > "$WORK/jobs"
+# 1. Scenes, JOBS at a time (a large map's convert takes a fraction of a second). Each episode
+# job is one line of $WORK/jobs.
+mkdir -p "$WORK/jobs.d"
+: > "$WORK/converts"
 for map in $MAPS; do
   mapfile=$MAP_DIR/$map.map
   [[ -f $mapfile ]] || { echo "maps_eval: no map file $mapfile" >&2; exit 2; }
@@ -117,7 +122,7 @@ for map in $MAPS; do
     if [[ -z $scens ]]; then  # rows drawn from the episode's seed
       for cell in $CELLS; do
         for (( s = SEED_FIRST; s <= SEED_LAST; s++ )); do
-          convert_scene "$map" "$cell" "$n" "$s" --random-scen --seed "$s"
+          plan_scene "$map" "$cell" "$n" "$s" --random-scen --seed "$s"
         done
       done
       continue
@@ -134,15 +139,20 @@ for map in $MAPS; do
       for (( s = SEED_FIRST; s <= SEED_LAST; s++ )); do
         b=$(( s % total )); i=0
         while (( b >= blocks[i] )); do b=$(( b - blocks[i] )); i=$(( i + 1 )); done
-        convert_scene "$map" "$cell" "$n" "$s" --scen "${files[i]}" --offset $(( b * n ))
+        plan_scene "$map" "$cell" "$n" "$s" --scen "${files[i]}" --offset $(( b * n ))
       done
     done
   done
 done
 
-# 2. Episodes, JOBS at a time, larger teams first (they take longest: a parallel run then ends
-# with short episodes, not one long one); each writes one row file (a failed eval writes an
-# eval-error row).
+export -f convert_scene
+export MADBP MAP_DIR METHODS WORK
+xargs -P "$JOBS" -L 1 bash -c 'convert_scene "$@"' _ < "$WORK/converts"
+cat "$WORK/jobs.d/"* > "$WORK/jobs" 2> /dev/null || true
+
+# 2. Episodes, JOBS at a time, seed by seed and within a seed larger teams first (they take
+# longest: the run then ends with short episodes, and a run cut short has whole seeds); each
+# writes one row file (a failed eval writes an eval-error row).
 run_one() {
   local map=$1 cell=$2 n=$3 s=$4 method=$5 scene=$6 json success collisions steps plan_ms
   # shellcheck disable=SC2086  # EVAL_FLAGS is a list of flags
@@ -162,7 +172,7 @@ export MADBP EVAL_FLAGS WORK
 njobs=$(wc -l < "$WORK/jobs")
 echo "maps_eval: $njobs episodes, $JOBS at a time" >&2
 if (( njobs > 0 )); then
-  sort -s -k3,3nr "$WORK/jobs" | xargs -P "$JOBS" -L 1 bash -c 'run_one "$@"' _
+  sort -s -k4,4n -k3,3nr "$WORK/jobs" | xargs -P "$JOBS" -L 1 bash -c 'run_one "$@"' _
 fi
 
 # 3. The episode table (sorted like the summary) and the summary.
