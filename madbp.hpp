@@ -3409,7 +3409,7 @@ void sample_windows(Denoiser& model, const NoiseSchedule& schedule, const SceneB
 struct TrafficConfig {
     bool take_turns = true;        // robots that would meet head-on in a one-lane passage take turns (false: each heads for its goal)
     int passage_replan = 4;        // while robots may meet in a passage, a plan asks to be replaced after this many steps (0: never)
-    double one_lane_width = 0.47;  // passages narrower than this, wall to wall, are one-lane (read to a small part of a cell)
+    double one_lane_width = 0.47;  // passages narrower than this, wall to wall, are one-lane (on the grid: 0.45 always, 0.50 never)
     // A robot's centre fits where the clearance is >= this: RouteClearance::min, so a 0.25-wide
     // aisle (a MovingAI map's one-cell aisle at cell 0.25) leaves a 0.046 band, which the 0.036
     // cells always hold, and is taken in turns wherever it falls (0.12, before 0.4: a 0.01 band,
@@ -4003,18 +4003,9 @@ private:
     void find_passages(const ClearanceGrid& grid, const WorldMap& map) {
         const int n = grid.n;
         const double chord_max = params.one_lane_width - 2 * params.free_clear, step = 0.5 * grid.cell;
-        // The clearance at q, bilinear between cell centres (exact beside a straight wall, where
-        // clearance is linear), so that a chord's ends fall between samples where the clearance
-        // crosses free_clear, not on the cells' edges: a corridor's width is then read to a small
-        // part of a cell, wherever its walls fall, and free_clear does not change which corridors
-        // are one-lane.
-        auto clear_at = [&](Vec2 q) {
-            if (std::abs(q.x) >= grid.half || std::abs(q.y) >= grid.half) return -1.0;
-            const double fx = (q.x + grid.half) / grid.cell - 0.5, fy = (q.y + grid.half) / grid.cell - 0.5;
-            const int c0 = std::clamp((int)std::floor(fx), 0, n - 2), r0 = std::clamp((int)std::floor(fy), 0, n - 2);
-            const double tx = std::clamp(fx - c0, 0.0, 1.0), ty = std::clamp(fy - r0, 0.0, 1.0);
-            const float* c = &grid.clear[(size_t)r0 * n + c0];
-            return (1 - ty) * ((1 - tx) * c[0] + tx * c[1]) + ty * ((1 - tx) * c[n] + tx * c[n + 1]);
+        auto fits = [&](Vec2 q) {
+            if (std::abs(q.x) >= grid.half || std::abs(q.y) >= grid.half) return false;
+            return grid.clear[grid.index(q)] >= params.free_clear;
         };
         // One-lane cells, keyed by the two obstacle groups their shortest chord ends at: a
         // corridor's cells all end at its two walls, so a narrow gap between a wall's end and a
@@ -4034,18 +4025,9 @@ private:
                 Vec2 end[2];
                 for (int side = 0; side < 2 && chord < shortest; ++side) {
                     const Vec2 way = side ? u : u * -1.0;
-                    double s = 0, inside = clear_at(c);  // c's cell fits; bilinear may read a little less
-                    for (;;) {
-                        const double next = clear_at(c + way * (s + step));
-                        if (next < params.free_clear) {  // the end: where the clearance crosses free_clear
-                            s += inside > next ? step * std::clamp((inside - params.free_clear) / (inside - next), 0.0, 1.0) : 0;
-                            break;
-                        }
-                        s += step, inside = next;
-                        if (chord + s >= shortest) break;
-                    }
-                    chord += s;
-                    end[side] = c + way * (s + step);
+                    double s = step;
+                    for (; chord < shortest && fits(c + way * s); s += step) chord += step;
+                    end[side] = c + way * s;
                 }
                 if (chord < shortest) shortest = chord, ends[0] = end[0], ends[1] = end[1];
             }
