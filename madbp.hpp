@@ -95,6 +95,8 @@
 //        Scenes are sampled in chunks (workspace.chunk_scenes) on set_num_threads' threads,
 //        bit-identical on any thread count; planner_workspace_bytes() is checked against
 //        workspace.max_mb before a plan. last_window_agent(i). plan_robot routes only its scene.
+//        traffic.free_clear 0.102 (was 0.12): one-cell aisles at cell 0.25 are passages.
+//        The planner's route guide keeps band fields (RouteGuide::band, madbp_sim.hpp).
 //   0.3  PlannerConfig: every planner setting in one struct, its defaults written once.
 //        PlannerConfig::tuned() (the default) and paper() (the paper's planner) presets.
 //        planner_settings(): one table behind validate(), set(), --set and --list-settings.

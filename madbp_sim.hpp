@@ -29,7 +29,8 @@
 //        wavefront in 2 bytes a cell (4 only when a cost reaches 65535), whole or, by default, a
 //        band of tiles around one robot's route (RouteGuide::band = 32 cells; the expert: 0),
 //        made again when a walk reads past it, so routes are those of whole fields; steps_to()
-//        returns a whole one.
+//        returns a whole one. obstacles_near: a map's obstacles near an area (local_crop and
+//        RouteGuide's views read only those).
 //   0.3  PassageControl and its parameters move to madbp.hpp (the planner's traffic conventions).
 //        ClearanceGrid moves to Section 2; ReachGrid is gone (detail::all_reachable on its layout).
 //        movingai_scene / load_movingai_scene: MovingAI MAPF benchmark maps and scenarios as scenes.
@@ -167,7 +168,7 @@ inline std::string number_text(double v) {
 // ============================ WORLD AND CONTROLLERS BELOW ===================================
 //
 // Contents (section numbers below; SPEC sections in brackets)
-//   1 geometry: Vec2, Disc, Box, WorldMap, for_each_surface, static_clearance
+//   1 geometry: Vec2, Disc, Box, WorldMap, for_each_surface, static_clearance, obstacles_near
 //   2 maps: make_map("empty" | "obstacles" | "barrier"), ClearanceGrid (the routing cells) [2]
 //   3 the world: WorldConfig, Agent, Metrics, World (add/remove agents, step)    [2]
 //   4 spawning: default_half_size, spawn_agents, make_random_world, WorldBatch   [2]
@@ -183,7 +184,8 @@ inline std::string number_text(double v) {
 //   9 tracker and safety filter: track_waypoint, track_plan, safety_filter       [3.2]
 //  10 plans: Plan, Planner, validate_plan, waypoint_now, LinePlanner, PlanFollower [3.2, 3.5, 8]
 //  11 episodes and evaluation: EpisodeLog, run_episode, default_max_steps, evaluate [9, 10]
-//  12 guided expert: ClosedCells, RouteClearance, wavefront, RouteGoal, RouteGuide (route subgoals),
+//  12 guided expert: ClosedCells, RouteClearance, wavefront, RouteGoal, RouteField (whole or band
+//     wavefronts), RouteGuide (route subgoals),
 //     ExpertParams, GuidedExpert (one-lane passages: the planner's, madbp.hpp),
 //     scene_step_limit (a scene's default step limit follows its routes)     [3.6]
 //  13 SVG: render_svg, write_text_file                                           [2]

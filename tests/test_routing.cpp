@@ -268,3 +268,46 @@ TEST_CASE("routing: band fields give the routes whole fields give, in a fraction
     CHECK(pushed > 5);
     CHECK(banded.workspace_bytes() < whole.workspace_bytes() / 2);
 }
+
+TEST_CASE("routing: obstacles_near answers a clearance threshold as the whole map does, and crops read it") {
+    // Random discs and boxes over a large world; for points in a rectangle, the clearance is
+    // below t (<= margin) on the near obstacles exactly when it is on the whole map.
+    Rng rng(21);
+    WorldMap map;
+    map.half_size = 10;
+    for (int i = 0; i < 120; ++i) {
+        const Vec2 c{rng.uniform(-9.5, 9.5), rng.uniform(-9.5, 9.5)};
+        if (i % 2) map.discs.push_back({c, rng.uniform(0.05, 0.4)});
+        else map.boxes.push_back({c, c + Vec2{rng.uniform(0.05, 0.8), rng.uniform(0.05, 0.8)}});
+    }
+    WorldMap near;
+    size_t kept = 0, checked = 0;
+    for (int r = 0; r < 40; ++r) {
+        const Vec2 lo{rng.uniform(-10, 8), rng.uniform(-10, 8)}, hi = lo + Vec2{rng.uniform(0.1, 2), rng.uniform(0.1, 2)};
+        const double margin = rng.uniform(0.05, 0.3);
+        obstacles_near(map, lo, hi, margin, near);
+        kept += near.discs.size() + near.boxes.size();
+        for (int i = 0; i < 50; ++i) {
+            const Vec2 q{rng.uniform(lo.x, hi.x), rng.uniform(lo.y, hi.y)};
+            for (double t : {margin, 0.5 * margin, 0.0}) {
+                CHECK((static_clearance(near, q) < t) == (static_clearance(map, q) < t));
+                ++checked;
+            }
+        }
+    }
+    CHECK(checked == 40 * 50 * 3);
+    CHECK(kept < 40 * (map.discs.size() + map.boxes.size()) / 10);  // a small part of the map each time
+    // A robot's crop (local_crop reads the near obstacles) is the crop of the whole map.
+    for (int i = 0; i < 20; ++i) {
+        const Vec2 p{rng.uniform(-9, 9), rng.uniform(-9, 9)};
+        const int Gl = 16;
+        const double extent = 0.8, w = 2 * extent / Gl;
+        std::vector<float> crop(Gl * Gl);
+        local_crop(map, p, Gl, extent, crop.data());
+        for (int row = 0; row < Gl; ++row)
+            for (int col = 0; col < Gl; ++col) {
+                const Vec2 c{p.x - extent + (col + 0.5) * w, p.y - extent + (row + 0.5) * w};
+                CHECK(crop[row * Gl + col] == (static_clearance(map, c) < 0.5 * w ? 1.0f : 0.0f));
+            }
+    }
+}
