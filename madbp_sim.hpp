@@ -2817,11 +2817,7 @@ public:
         set_map(map);
         walk_field(grid_.index(p), goal, {}, [&](const RouteField& steps) {
             cells.clear();
-            int k = start_cell(steps, grid_.index(p));
-            while (k >= 0 && (int)cells.size() < max_cells) {
-                cells.push_back(k);
-                k = steps[k] > 0 ? downhill(steps, k, goal) : -1;
-            }
+            append_walk(steps, grid_.index(p), goal, (size_t)std::max(0, max_cells), cells);
             return 0;
         });
     }
@@ -2910,7 +2906,7 @@ private:
         if (it == fields_.end()) {
             const std::vector<int> steps = wavefront(grid_, goal_cell, route(), closed);
             std::vector<int> cells;
-            if (!whole) walked_cells(steps, from, goal, cells);
+            if (!whole) cells.assign(1, from), append_walk(steps, from, goal, steps.size() + 1, cells);
             RouteField made(steps, grid_.n, whole ? nullptr : &cells, band);
             while (!fields_.empty() && field_bytes_ + made.bytes() > kFieldCacheBytes) {
                 auto oldest = fields_.begin();
@@ -2937,12 +2933,13 @@ private:
         read_absent_ = false;
         return walk(field(goal_cell, closed, from, goal, true));
     }
-    // The cells of the walk from cell `from` on a whole wavefront: from, then start_cell's and
-    // downhill to the goal (the band's route).
-    void walked_cells(const std::vector<int>& steps, int from, Vec2 goal, std::vector<int>& cells) {
-        cells.assign(1, from);
+    // Appends the walk from cell `from` on `steps` (start_cell's, then downhill to the goal's
+    // cell) to `cells` while it holds fewer than max_cells: route_cells' route, and the route a
+    // band field is made around.
+    template <class Steps>
+    void append_walk(const Steps& steps, int from, Vec2 goal, size_t max_cells, std::vector<int>& cells) {
         int k = start_cell(steps, from);
-        for (size_t guard = 0; k >= 0 && guard < steps.size(); ++guard) {
+        while (k >= 0 && cells.size() < max_cells) {
             cells.push_back(k);
             k = steps[k] > 0 ? downhill(steps, k, goal) : -1;
         }
