@@ -97,6 +97,8 @@
 //        workspace.max_mb before a plan. last_window_agent(i). plan_robot routes only its scene.
 //        traffic.free_clear 0.102 (was 0.12): one-cell aisles at cell 0.25 are passages.
 //        The planner's route guide keeps band fields (RouteGuide::band, madbp_sim.hpp).
+//        PassageControl::arbitrate's `asked`: a plan routes only robots that may claim a passage
+//        its scenes' robots claim (plan_robot among 1024: 1.3 ms, was 7.2).
 //   0.3  PlannerConfig: every planner setting in one struct, its defaults written once.
 //        PlannerConfig::tuned() (the default) and paper() (the paper's planner) presets.
 //        planner_settings(): one table behind validate(), set(), --set and --list-settings.
@@ -3756,9 +3758,12 @@ public:
     // the robot's id, which breaks ties, or nullptr: the index does):
     // wait[i] = kWait and point[i] = where to wait; kGoAround (keep out of the passage
     // closed_to(i) on the way to goal[i]); or kGoOn (point[i] = goal[i]). Returns how many do not go on.
+    // asked (nullptr: all): the robots whose turns the caller reads. Only the passages they claim
+    // are decided, from every claim on them, so their turns are those of a call with all asked;
+    // the others' may not be (a robot planning for itself among 1024 routes a few, not 1024).
     enum Turn : char { kGoOn = 0, kWait = 1, kGoAround = 2 };
     int arbitrate(RouteGuide& guide, const WorldMap& map, int n, const Vec2* pos, const Vec2* goal, const char* at_goal,
-                  std::vector<char>& wait, std::vector<Vec2>& point, const int* ids = nullptr) {
+                  std::vector<char>& wait, std::vector<Vec2>& point, const int* ids = nullptr, const char* asked = nullptr) {
         const TrafficConfig& p = params;
         const double lengths[] = {p.one_lane_width, p.free_clear, p.lookahead, p.wait_back, p.queue_spacing, p.wait_side, p.min_length, p.bypass, p.spread, p.spare};
         for (double v : lengths)
@@ -3772,28 +3777,31 @@ public:
         claims_.clear();
         if (mouths_.empty()) return 0;
         const int max_cells = 2 + (int)std::ceil(p.lookahead / grid.cell);
-        for (int i = 0; i < n; ++i) {
-            if (at_goal[i]) continue;
-            guide.route_cells(map, pos[i], goal[i], max_cells, route_);
+        // Only passages an asked robot claims are decided, so only robots whose route may reach
+        // one claim: a route's cells lie within (max_cells + 3) sqrt(2) cells of the robot (its
+        // start cell within 2 cells, then one neighbour a step).
+        const double reach = (max_cells + 3) * std::sqrt(2.0) * grid.cell;
+        asked_claims_.clear();
+        relevant_.assign(avoidable_.size(), asked ? 0 : 1);
+        if (asked) {
             Claim c;
-            c.robot = i;
-            for (int j = 0; j < (int)route_.size() && c.passage < 0; ++j)
-                if (cell_passage[route_[j]] >= 0) c.passage = cell_passage[route_[j]], c.entry = j;
-            if (c.passage < 0) continue;
-            c.exit = c.entry;
-            while (c.exit + 1 < (int)route_.size() && cell_passage[route_[c.exit + 1]] == c.passage) ++c.exit;
-            c.mouth = c.entry > 0 ? mouth_[route_[c.entry - 1]] : -1;
-            if (c.mouth < 0 || mouths_[c.mouth].passage != c.passage) {
-                // In the passage (or entered beside a mouth): the nearest mouth but the one the route leaves by.
-                const int leaves = c.exit + 1 < (int)route_.size() ? mouth_[route_[c.exit + 1]] : -1;
-                c.mouth = -1;
-                for (int m = 0; m < (int)mouths_.size(); ++m)
-                    if (mouths_[m].passage == c.passage && m != leaves &&
-                        (c.mouth < 0 || norm(mouths_[m].at - pos[i]) < norm(mouths_[c.mouth].at - pos[i])))
-                        c.mouth = m;
-                if (c.mouth < 0) continue;
+            for (int i = 0; i < n; ++i)
+                if (asked[i] && !at_goal[i] && make_claim(guide, map, cell_passage, max_cells, i, pos, goal, c)) {
+                    asked_claims_.push_back(c);
+                    relevant_[c.passage] = 1;
+                }
+        }
+        size_t next_asked = 0;
+        for (int i = 0; i < n; ++i) {
+            if (asked && asked[i]) {  // its claim, in robot order
+                if (next_asked < asked_claims_.size() && asked_claims_[next_asked].robot == i) claims_.push_back(asked_claims_[next_asked++]);
+                continue;
             }
-            claims_.push_back(c);
+            if (at_goal[i]) continue;
+            bool near = !asked;
+            for (size_t q = 0; !near && q < box_.size(); ++q) near = relevant_[q] && box_[q].distance(pos[i]) <= reach;
+            Claim c;
+            if (near && make_claim(guide, map, cell_passage, max_cells, i, pos, goal, c) && relevant_[c.passage]) claims_.push_back(c);
         }
         // A claim from another mouth waits when it would enter before a claim from the holder's mouth
         // is `spare` out (route cells, as if both moved alike; the safety filter keeps them apart).
@@ -3843,7 +3851,8 @@ public:
         }
         return waiting;
     }
-    // Whether the last arbitrate() saw claims on one passage from two of its mouths (robots that may meet in it).
+    // Whether the last arbitrate() saw claims on one passage from two of its mouths (robots that may
+    // meet in it), of the passages it decided.
     bool contested() const {
         for (size_t a = 0; a < claims_.size(); ++a)
             for (size_t b = 0; b < a; ++b)
@@ -3868,9 +3877,43 @@ private:
     std::vector<Mouth> mouths_;
     std::vector<char> avoidable_;    // per passage: it has a way around within `bypass`
     std::vector<uint64_t> closed_key_;  // per passage: ClosedCells::key of its cells
+    // Per passage: the box of its cells' centres (arbitrate's `asked`: who may claim it).
+    struct Box {
+        Vec2 lo, hi;
+        void add(Vec2 q) { lo = {std::min(lo.x, q.x), std::min(lo.y, q.y)}, hi = {std::max(hi.x, q.x), std::max(hi.y, q.y)}; }
+        double distance(Vec2 q) const { return norm(Vec2{std::max({lo.x - q.x, 0.0, q.x - hi.x}), std::max({lo.y - q.y, 0.0, q.y - hi.y})}); }
+    };
+    std::vector<Box> box_;
+    std::vector<Claim> asked_claims_;   // arbitrate: the asked robots' claims, then made in robot order
+    std::vector<char> relevant_;        // arbitrate: per passage, some asked robot claims it
     std::vector<std::vector<int>> side_closed_;  // per avoidable passage p and side s, [2p + s]: the cells a robot going around on s keeps out of, sorted
     std::vector<Claim> claims_;
 
+    // Robot i's claim (`c`): the first passage on its route within max_cells route cells, where
+    // the route enters and leaves it, and the mouth it enters by; false when it claims none.
+    bool make_claim(RouteGuide& guide, const WorldMap& map, const std::vector<int>& cell_passage, int max_cells, int i, const Vec2* pos, const Vec2* goal,
+                    Claim& c) {
+        guide.route_cells(map, pos[i], goal[i], max_cells, route_);
+        c = Claim{};
+        c.robot = i;
+        for (int j = 0; j < (int)route_.size() && c.passage < 0; ++j)
+            if (cell_passage[route_[j]] >= 0) c.passage = cell_passage[route_[j]], c.entry = j;
+        if (c.passage < 0) return false;
+        c.exit = c.entry;
+        while (c.exit + 1 < (int)route_.size() && cell_passage[route_[c.exit + 1]] == c.passage) ++c.exit;
+        c.mouth = c.entry > 0 ? mouth_[route_[c.entry - 1]] : -1;
+        if (c.mouth < 0 || mouths_[c.mouth].passage != c.passage) {
+            // In the passage (or entered beside a mouth): the nearest mouth but the one the route leaves by.
+            const int leaves = c.exit + 1 < (int)route_.size() ? mouth_[route_[c.exit + 1]] : -1;
+            c.mouth = -1;
+            for (int m = 0; m < (int)mouths_.size(); ++m)
+                if (mouths_[m].passage == c.passage && m != leaves &&
+                    (c.mouth < 0 || norm(mouths_[m].at - pos[i]) < norm(mouths_[c.mouth].at - pos[i])))
+                    c.mouth = m;
+            if (c.mouth < 0) return false;
+        }
+        return true;
+    }
     // Where the robot waits that is `distance` out from mouth m: right of the way in, left, or on it,
     // the first point that fits (clearance >= free_clear + 0.04) outside any passage.
     Vec2 waiting_point(const ClearanceGrid& grid, const Mouth& m, double distance) const {
@@ -4042,6 +4085,7 @@ private:
         mouths_.clear();
         avoidable_.clear();
         closed_key_.clear();
+        box_.clear();
         side_closed_.clear();
         std::vector<int> component((size_t)n * n, -1), cells, group;
         int passages = 0, components = 0;
@@ -4096,10 +4140,13 @@ private:
             }
             avoidable_.push_back(avoidable);
             uint64_t key = 1469598103934665603ull;  // FNV-1a of the cells: the same key means the same cells
+            Box box{grid.centre(cells[0]), grid.centre(cells[0])};
             for (int c : cells) {
                 passage_[c] = passages;
                 key = (key ^ (uint64_t)c) * 1099511628211ull;
+                box.add(grid.centre(c));
             }
+            box_.push_back(box);
             closed_key_.push_back(key | 1);  // never 0 (no cells)
             side_closed_.resize(2 * (passages + 1));
             if (avoidable)
@@ -4154,12 +4201,13 @@ public:
     };
     PlannerConfig settings;
     int last_plan_candidates() const { return last_k_; }  // candidates per scene the last plan drew
-    // What the last plan (or plan_robot) asks: traffic.passage_replan while robots may meet in a
-    // passage, else 0 (Plan::replan_after).
+    // What the last plan (or plan_robot) asks: traffic.passage_replan while robots of its scenes
+    // may meet in a passage, else 0 (Plan::replan_after).
     int replan_after() const {
         const TrafficConfig& t = settings.traffic;
         if (t.passage_replan <= 0 || !t.take_turns) return 0;
-        const bool waits = std::find(waiting_.begin(), waiting_.end(), (char)PassageControl::kWait) != waiting_.end();
+        bool waits = false;
+        for (size_t i = 0; i < waiting_.size(); ++i) waits = waits || (in_scene_[i] && waiting_[i] == PassageControl::kWait);
         return waits || passages_.contested() ? t.passage_replan : 0;
     }
 
@@ -4377,7 +4425,7 @@ private:
         waiting_.assign(n, PassageControl::kGoOn);
         if (settings.traffic.take_turns) {
             passages_.params = settings.traffic;
-            passages_.arbitrate(guide_, map, n, pos_.data(), goal_.data(), at_goal_.data(), waiting_, wait_point_, ids_.data());
+            passages_.arbitrate(guide_, map, n, pos_.data(), goal_.data(), at_goal_.data(), waiting_, wait_point_, ids_.data(), in_scene_.data());
         }
         route_.resize(n);
         for (int i = 0; i < n; ++i)

@@ -328,6 +328,67 @@ TEST_CASE("passages: spare, the room a claim from the other mouth leaves the hol
     CHECK_FALSE(pc.contested());
 }
 
+TEST_CASE("passages: asked robots' turns are those of a call for all; robots far from their passages are not routed") {
+    // A wall across a world of half-size 3 with three corridors through it (x = -2, 0, 2) and a
+    // free-standing corridor (a way around) below; 40 robots crossing and walking beside them.
+    WorldMap map;
+    map.half_size = 3;
+    const double t = 0.05, w = 0.22;
+    double x_from = -3;
+    for (double x0 : {-2.0, 0.0, 2.0}) {
+        map.boxes.push_back({{x_from, -t}, {x0 - w, t}});
+        map.boxes.push_back({{x0 - w - 2 * t, -0.4}, {x0 - w, 0.4}});
+        map.boxes.push_back({{x0 + w, -0.4}, {x0 + w + 2 * t, 0.4}});
+        x_from = x0 + w;
+    }
+    map.boxes.push_back({{x_from, -t}, {3, t}});
+    map.boxes.push_back({{-1.0 - w - 2 * t, -2.2}, {-1.0 - w, -1.4}});
+    map.boxes.push_back({{-1.0 + w, -2.2}, {-1.0 + w + 2 * t, -1.4}});
+    Rng rng(7);
+    auto free_point = [&] {
+        for (;;) {
+            const Vec2 q{rng.uniform(-2.8, 2.8), rng.uniform(-2.8, 2.8)};
+            if (static_clearance(map, q) >= 0.15) return q;
+        }
+    };
+    const int n = 40;
+    std::vector<Vec2> pos(n), goal(n);
+    std::vector<char> at_goal(n, 0);
+    std::vector<int> ids(n);
+    for (int i = 0; i < n; ++i) pos[i] = free_point(), goal[i] = free_point(), ids[i] = n - i;
+    RouteGuide guide;
+    PassageControl all;
+    std::vector<char> wait, one_wait;
+    std::vector<Vec2> point, one_point;
+    all.arbitrate(guide, map, n, pos.data(), goal.data(), at_goal.data(), wait, point, ids.data());
+    const size_t routed_all = guide.fields_cached();
+    REQUIRE(std::count(wait.begin(), wait.end(), kWait) + std::count(wait.begin(), wait.end(), kAround) >= 2);  // turns are taken
+    bool any_asked_replan = false;
+    size_t routed_most = 0;
+    for (int r = 0; r < n; ++r) {
+        // Robot r and its nearest other robot asked, as in a scene of two.
+        int near = r == 0 ? 1 : 0;
+        for (int j = 0; j < n; ++j)
+            if (j != r && norm(pos[j] - pos[r]) < norm(pos[near] - pos[r])) near = j;
+        std::vector<char> asked(n, 0);
+        asked[r] = asked[near] = 1;
+        RouteGuide own_guide;
+        PassageControl own;
+        own.arbitrate(own_guide, map, n, pos.data(), goal.data(), at_goal.data(), one_wait, one_point, ids.data(), asked.data());
+        routed_most = std::max(routed_most, own_guide.fields_cached());
+        for (int k : {r, near}) {
+            CHECK(one_wait[k] == wait[k]);
+            CHECK(one_point[k] == point[k]);
+            CHECK(own.closed_to(k).key == all.closed_to(k).key);
+            CHECK(own.closed_to(k).any() == all.closed_to(k).any());
+        }
+        any_asked_replan = any_asked_replan || own.contested() || one_wait[r] == kWait;
+    }
+    // A team whose robots ask for themselves replans as the team does (DecentralisedTeam).
+    CHECK(any_asked_replan == (all.contested() || std::count(wait.begin(), wait.end(), kWait) > 0));
+    CHECK(routed_most < routed_all);
+}
+
 TEST_CASE("passages: bad parameters are named") {
     RouteGuide guide;
     PassageControl pc;
