@@ -99,6 +99,8 @@
 //        The planner's route guide keeps band fields (RouteGuide::band, madbp_sim.hpp).
 //        PassageControl::arbitrate's `asked`: a plan routes only robots that may claim a passage
 //        its scenes' robots claim (plan_robot among 1024: 1.3 ms, was 7.2).
+//        guidance.priority 4 (SceneBatch::priority): in a team larger than a scene, a scene's
+//        robots give way in its guidance by priority_order, as the expert's robots do.
 //   0.3  PlannerConfig: every planner setting in one struct, its defaults written once.
 //        PlannerConfig::tuned() (the default) and paper() (the paper's planner) presets.
 //        planner_settings(): one table behind validate(), set(), --set and --list-settings.
@@ -1916,6 +1918,7 @@ struct SceneBatch {
     bool shared_grid = false;       // grid holds one map for every scene (planning only; encoded once)
     std::vector<Vec2> origin;       // (B) world position of each scene's frame (0 in the World frame)
     std::vector<float> goal_final;  // (A) 1: the goal is the agent's real goal; 0: a route subgoal (never pinned)
+    std::vector<float> priority;    // (A) > 0: the guidance's push between two agents moves the higher one less (window_cost)
     std::vector<uint64_t> noise_seed;  // (B) or empty: scene b's sampling noise from its own stream (decentralised planning)
 
     int agents() const { return B * n; }
@@ -1941,6 +1944,7 @@ struct SceneBatch {
         local.setZero(1, (long)Gl * Gl * B * n);
         origin.assign(B, Vec2{0, 0});
         goal_final.assign((size_t)B * n, 1.0f);
+        priority.assign((size_t)B * n, 1.0f);
         noise_seed.clear();
     }
     void resize(int B_, int n_, const ModelConfig& c, bool shared = false) { resize(B_, n_, c.grid, c.local_grid, shared); }
@@ -2635,7 +2639,7 @@ private:
         if ((long)b.agent_mask.size() != A || (long)b.slot.size() != A || (long)b.count.size() != b.B || b.pose.rows() != SceneBatch::kPoseRows ||
             b.pose.cols() != A || b.grid.rows() != 1 || b.grid.cols() != (long)config.grid * config.grid * b.grid_scenes() ||
             b.local.cols() != (long)config.local_grid * config.local_grid * A || (long)b.origin.size() != b.B ||
-            (long)b.goal_final.size() != A || (!b.noise_seed.empty() && (long)b.noise_seed.size() != b.B))
+            (long)b.goal_final.size() != A || (long)b.priority.size() != A || (!b.noise_seed.empty() && (long)b.noise_seed.size() != b.B))
             throw std::invalid_argument("scene batch: array sizes do not match B = " + std::to_string(b.B) + ", n = " + std::to_string(b.n));
         for (int s = 0; s < b.B; ++s)
             if (b.count[s] < 0 || b.count[s] > config.n_max)
@@ -3032,7 +3036,9 @@ constexpr double kKeepRightFade = 0.05;
 // each other, h = that reach - their distance, and v = the pair's relative motion there (a's
 // waypoints t+1 minus t-1, minus b's), a is pushed by keep_right * h along v turned right
 // (unit, fading below kKeepRightFade), b by the opposite; in `grad` as minus those pushes. The
-// returned cost does not change.
+// returned cost does not change. Unequal SceneBatch::priority splits both pair terms of `grad`:
+// a takes 2 p_b / (p_a + p_b) of its share, b 2 p_a / (p_a + p_b) (the higher gives way less;
+// then not the cost's gradient either).
 inline double window_cost(const SceneBatch& batch, int s, const Mat& x, const ModelConfig& c, const WindowCost& w,
                           const MapFields& fields, Mat* grad = nullptr, float keep_right = 0) {
     const DistanceField& field = fields.clearance;
@@ -3056,6 +3062,8 @@ inline double window_cost(const SceneBatch& batch, int s, const Mat& x, const Mo
         for (int j = i + 1; j < n; ++j) {  // robots too close to each other
             const int b = s * n + j;
             if (batch.agent_mask[b] == 0) continue;
+            // The pair's pushes split by priority (2 pb / (pa + pb) of a's, equal: 1 each).
+            const double pa = batch.priority[a], pb = batch.priority[b], share_a = 2 * pb / (pa + pb), share_b = 2 * pa / (pa + pb);
             for (int t = 1; t < H; ++t) {
                 const double dx = P(a, t, 0) - P(b, t, 0), dy = P(a, t, 1) - P(b, t, 1), dist = std::sqrt(dx * dx + dy * dy);
                 const double h = reach - dist;
@@ -3063,8 +3071,8 @@ inline double window_cost(const SceneBatch& batch, int s, const Mat& x, const Mo
                 cost += w.agent_weight * h * h;
                 if (grad && dist > 1e-12) {
                     const double g = -2.0 * w.agent_weight * h / dist;  // d cost / d P_a = g * (P_a - P_b)
-                    add(a, t, g * dx, g * dy);
-                    add(b, t, -g * dx, -g * dy);
+                    add(a, t, share_a * g * dx, share_a * g * dy);
+                    add(b, t, -share_b * g * dx, -share_b * g * dy);
                 }
                 if (grad && keep_right > 0) {
                     // A head-on pair's push above is along the line between them, which can only
@@ -3073,8 +3081,8 @@ inline double window_cost(const SceneBatch& batch, int s, const Mat& x, const Mo
                     const double vx = P(a, t1, 0) - P(a, t - 1, 0) - (P(b, t1, 0) - P(b, t - 1, 0));
                     const double vy = P(a, t1, 1) - P(a, t - 1, 1) - (P(b, t1, 1) - P(b, t - 1, 1));
                     const double k = keep_right * h / std::max(std::sqrt(vx * vx + vy * vy), kKeepRightFade);
-                    add(a, t, -k * vy, k * vx);  // a's push k (vy, -vx): v turned right
-                    add(b, t, k * vy, -k * vx);
+                    add(a, t, -share_a * k * vy, share_a * k * vx);  // a's push k (vy, -vx): v turned right
+                    add(b, t, share_b * k * vy, -share_b * k * vx);
                 }
             }
         }
@@ -3120,6 +3128,7 @@ inline void size_like(const SceneBatch& src, int B, SceneBatch& dst) {
     dst.local.resize(1, L * B * n);
     dst.origin.resize(B);
     dst.goal_final.resize((size_t)B * n);
+    dst.priority.resize((size_t)B * n);
     dst.noise_seed.resize(src.noise_seed.empty() ? 0 : B);
     if (src.shared_grid) dst.grid = src.grid;
 }
@@ -3136,6 +3145,7 @@ inline void copy_scene(const SceneBatch& src, int b, SceneBatch& dst, int d) {
         dst.agent_mask[to] = src.agent_mask[from];
         dst.slot[to] = src.slot[from];
         dst.goal_final[to] = src.goal_final[from];
+        dst.priority[to] = src.priority[from];
         dst.pose.col(to) = src.pose.col(from);
         if (L) dst.local.middleCols((long)to * L, L) = src.local.middleCols((long)from * L, L);
     }
@@ -3474,6 +3484,9 @@ struct PlannerConfig {
     struct Guidance {
         float weight = 0.004f;   // each DDIM step moves x0_hat's waypoints by -weight * d cost / d waypoint (0: plain DDIM)
         float keep_right = 500;  // robots meeting in the guided windows are pushed to the right of their relative motion
+        // >= 1: in a team larger than a scene, each scene's robot of first priority (priority_order:
+        // longest way when first seen) is pushed this many times less than its last (1: all alike).
+        float priority = 4;
         WindowCost cost;         // the cost the guidance descends and best-of-k ranks
     } guidance;
     TrafficConfig traffic;
@@ -3494,6 +3507,7 @@ struct PlannerConfig {
         p.sampler.end_bend = 0;
         p.guidance.weight = 0;
         p.guidance.keep_right = 0;
+        p.guidance.priority = 1;
         p.traffic.take_turns = false;
         p.traffic.passage_replan = 0;
         p.follower.priority_weight = 1;
@@ -3598,6 +3612,8 @@ inline const std::vector<PlannerSetting>& planner_settings() {
          +[](C& c) -> float& { return c.guidance.weight; }},
         {"guidance.keep_right", 0, 1e6, "robots meeting in the guided windows are pushed to the right of their relative motion", nullptr, 0,
          +[](C& c) -> float& { return c.guidance.keep_right; }},
+        {"guidance.priority", 1, 1e6, "in a team larger than a scene, each scene's first robot in priority is pushed this many times less than its last (1 = all alike)", nullptr, 0,
+         +[](C& c) -> float& { return c.guidance.priority; }},
         {"guidance.agent_weight", 0, 1e6, "cost weight of robots closer than 2 radius + agent_margin", nullptr, 0,
          +[](C& c) -> float& { return c.guidance.cost.agent_weight; }},
         {"guidance.map_weight", 0, 1e6, "cost weight of robots closer than radius + map_margin to the map", nullptr, 0,
@@ -4352,7 +4368,8 @@ private:
     WorldMap grid_map_;
     bool grid_valid_ = false;
     Mat x_, eps_;
-    std::vector<int> steps_, members_, ids_;
+    std::vector<int> steps_, members_, ids_, order_;
+    std::map<int, std::pair<Vec2, double>> first_seen_;  // by id: the goal and its distance when first seen (set_priorities)
     // The scenes of a plan (choose_scenes): scene b holds robots scene_robots_[b*K .. b*K + m)
     // (-1 after them), nearest to its seed scene_seed_[b] first; robot i's window is column
     // window_col_[i] of x_ (-1: none).
@@ -4464,10 +4481,34 @@ private:
                 encode_agent(batch_, a, /*slot*/ k, pos_[i], route_[i].goal, map, c, route_[i].final);
             }
             batch_.count[b] = m;
+            set_priorities(b, m, robots, /*crowd*/ K < n);
         }
+        if (first_seen_.size() > 2 * (size_t)n + 64)  // robots gone: keep the keys of this plan's (bounded memory)
+            for (auto it = first_seen_.begin(); it != first_seen_.end();)
+                it = std::find(ids_.begin(), ids_.end(), it->first) == ids_.end() ? first_seen_.erase(it) : std::next(it);
         last_k_ = sc.candidates;
         if (sc.conflict_aware()) conflict_.set_map(map);  // the distance field, once per map
         sample_scenes(sc, warm);
+    }
+
+    // Scene b's robots' SceneBatch::priority (guidance.priority) in a team larger than a scene
+    // (`crowd`): priority_order's rule, the key the distance to the goal when the robot was first
+    // seen heading there. A team planned in one scene shares the way alike: in the 50 tuning
+    // cells (pairs and fours) priorities cost pace (docs/experiments.md, "Priorities in crowds").
+    void set_priorities(int b, int m, const int* robots, bool crowd) {
+        const float first = settings.guidance.priority;
+        const int K = batch_.n;
+        for (int k = 0; k < K; ++k) batch_.priority[(size_t)b * K + k] = 1;
+        if (first == 1 || !crowd) return;
+        for (int k = 0; k < m; ++k) {
+            const int i = robots[k];
+            auto seen = first_seen_.find(ids_[i]);
+            if (seen == first_seen_.end() || !(seen->second.first == goal_[i]))
+                seen = first_seen_.insert_or_assign(ids_[i], std::make_pair(goal_[i], norm(goal_[i] - pos_[i]))).first;
+        }
+        priority_order(m, [&](int k) { return at_goal_[robots[k]] != 0; }, [&](int k) { return first_seen_[ids_[robots[k]]].second; },
+                       [&](int k) { return ids_[robots[k]]; }, order_);
+        for (int rank = 0; rank < m; ++rank) batch_.priority[(size_t)b * K + order_[rank]] = (float)priority_weight_of(rank, m, first);
     }
 
     // Robot b's neighbourhood into members_[0, m), returns m: b and its K-1 nearest (nearest

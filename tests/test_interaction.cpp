@@ -492,6 +492,90 @@ TEST_CASE("window cost: the keep-right push turns a head-on pair to their right,
     CHECK(inside >= 2);  // (a bad keep_right: "sampler: every option is checked ...")
 }
 
+TEST_CASE("window cost: priorities split a pair's pushes, the higher robot moved less, cost unchanged") {
+    const ModelConfig c = tiny_config();
+    SceneBatch s = swap_pair(c);
+    MapFields open;
+    open.set_map(WorldMap{});
+    const int H = c.horizon;
+    Mat x = Mat::Zero(2, 2L * H);  // as above: straight through each other
+    for (int a = 0; a < 2; ++a)
+        for (int t = 0; t < H; ++t) x(0, (long)a * H + t) = (float)((a ? -0.6 : 0.6) * t / (H - 1) / c.window_scale);
+    const WindowCost w;
+    const float K = 50;
+    Mat equal = Mat::Zero(2, x.cols()), split = Mat::Zero(2, x.cols());
+    const double cost = window_cost(s, 0, x, c, w, open, &equal, K);
+    s.priority = {3.0f, 1.0f};  // a first: a takes 2 * 1 / 4 of its push, b 2 * 3 / 4
+    CHECK(window_cost(s, 0, x, c, w, open, &split, K) == cost);
+    // Only the pair terms change: with no goal term both columns' differences are the pair's.
+    WindowCost pairs_only = w;
+    pairs_only.goal_weight = 0;
+    pairs_only.map_weight = 0;
+    Mat e = Mat::Zero(2, x.cols()), sp = Mat::Zero(2, x.cols());
+    s.priority = {1.0f, 1.0f};
+    window_cost(s, 0, x, c, pairs_only, open, &e, K);
+    s.priority = {3.0f, 1.0f};
+    window_cost(s, 0, x, c, pairs_only, open, &sp, K);
+    int pushed = 0;
+    for (int t = 1; t < H; ++t) {
+        for (int k = 0; k < 2; ++k) {
+            CHECK(sp(k, t) == doctest::Approx(0.5 * e(k, t)).epsilon(1e-5));
+            CHECK(sp(k, (long)H + t) == doctest::Approx(1.5 * e(k, (long)H + t)).epsilon(1e-5));
+        }
+        pushed += e.col(t).norm() > 0;
+    }
+    CHECK(pushed >= 2);
+    // Equal priorities of any value are today's pushes.
+    s.priority = {2.0f, 2.0f};
+    Mat same = Mat::Zero(2, x.cols());
+    window_cost(s, 0, x, c, w, open, &same, K);
+    CHECK(same == equal);
+}
+
+TEST_CASE("planner: guidance.priority ranks a scene's robots by their way to go when first seen, in teams larger than a scene") {
+    const ModelConfig c = tiny_config();
+    // Distance to go when first seen: robot at x = -1.0 2.0, at x = -0.5 1.0, at x = 0.0 0.5.
+    auto team = [](double first_x) {
+        World w;
+        w.add_agent({first_x, 0.5}, {1.0, 0.5});
+        w.add_agent({0.0, -0.5}, {0.5, -0.5});
+        w.add_agent({-0.5, 0.0}, {0.5, 0.0});
+        return w;
+    };
+    const World world = team(-1.0);
+    auto first_seen_distance = [](double x) { return x < -0.9 ? 2.0 : x > -0.1 ? 0.5 : 1.0; };
+    DiffusionPlanner planner(MadbpModel(c, 1), 2);
+    planner.settings.neighbourhood.neighbours = 2;  // scenes of two among three
+    planner.settings.guidance.priority = 4;
+    // In each scene of two the robot with the longer way gets 4, the other 1.
+    auto check_scenes = [&](const World& w, double x_first) {
+        planner.plan(w);
+        const SceneBatch& b = planner.last_scene_batch();
+        REQUIRE(b.n == 2);
+        int scenes = 0;
+        for (int s = 0; s < b.B; ++s) {
+            if (b.agent_mask[2 * s] == 0 || b.agent_mask[2 * s + 1] == 0) continue;
+            ++scenes;
+            auto key = [&](int a) { const double x = b.position(a, c).x; return x > 0.6 ? first_seen_distance(x_first) : first_seen_distance(x); };
+            const int hi = key(2 * s) > key(2 * s + 1) ? 2 * s : 2 * s + 1, lo = 4 * s + 1 - hi;
+            CHECK(b.priority[hi] == 4.0f);
+            CHECK(b.priority[lo] == 1.0f);
+        }
+        CHECK(scenes >= 2);
+    };
+    check_scenes(world, -1.0);
+    // The key is kept while the goal stays: robot 0, moved near its goal, still counts 2.0.
+    check_scenes(team(0.7), -1.0);
+    // One scene of the whole team, or priority 1: every robot alike.
+    planner.settings.neighbourhood.neighbours = 0;
+    planner.plan(world);
+    for (float p : planner.last_scene_batch().priority) CHECK(p == 1.0f);
+    planner.settings.neighbourhood.neighbours = 2;
+    planner.settings.guidance.priority = 1;
+    planner.plan(world);
+    for (float p : planner.last_scene_batch().priority) CHECK(p == 1.0f);
+}
+
 // ---------------------------------------------------------------------------------------------
 // The sampler
 

@@ -56,6 +56,7 @@ TEST_CASE("settings: the presets: tuned is the default; paper is plain DDIM with
     // The tuned values, written once as member initializers (docs/experiments.md says what each bought).
     CHECK(t.guidance.weight == 0.004f);
     CHECK(t.guidance.keep_right == 500.f);
+    CHECK(t.guidance.priority == 4.f);
     CHECK(t.sampler.end_bend == 1.f);
     CHECK(t.sampler.sample_steps == 8);
     CHECK(t.sampler.warm_start == 4);
@@ -72,6 +73,7 @@ TEST_CASE("settings: the presets: tuned is the default; paper is plain DDIM with
     CHECK(p.neighbourhood.cover == 0);  // a scene per robot where neighbourhoods are used
     CHECK(p.guidance.weight == 0);
     CHECK(p.guidance.keep_right == 0);
+    CHECK(p.guidance.priority == 1);
     CHECK(p.sampler.end_bend == 0);
     CHECK(p.sampler.warm_start == 0);
     CHECK(!p.sampler.line_start);
