@@ -3799,12 +3799,13 @@ public:
         const double reach = (max_cells + 3) * std::sqrt(2.0) * grid.cell;
         asked_claims_.clear();
         relevant_.assign(avoidable_.size(), asked ? 0 : 1);
+        relevant_list_.clear();
         if (asked) {
             Claim c;
             for (int i = 0; i < n; ++i)
                 if (asked[i] && !at_goal[i] && make_claim(guide, map, cell_passage, max_cells, i, pos, goal, c)) {
                     asked_claims_.push_back(c);
-                    relevant_[c.passage] = 1;
+                    if (!relevant_[c.passage]) relevant_[c.passage] = 1, relevant_list_.push_back(c.passage);
                 }
         }
         size_t next_asked = 0;
@@ -3815,7 +3816,7 @@ public:
             }
             if (at_goal[i]) continue;
             bool near = !asked;
-            for (size_t q = 0; !near && q < box_.size(); ++q) near = relevant_[q] && box_[q].distance(pos[i]) <= reach;
+            for (size_t q = 0; !near && q < relevant_list_.size(); ++q) near = box_distance(box_[relevant_list_[q]], pos[i]) <= reach;
             Claim c;
             if (near && make_claim(guide, map, cell_passage, max_cells, i, pos, goal, c) && relevant_[c.passage]) claims_.push_back(c);
         }
@@ -3893,15 +3894,10 @@ private:
     std::vector<Mouth> mouths_;
     std::vector<char> avoidable_;    // per passage: it has a way around within `bypass`
     std::vector<uint64_t> closed_key_;  // per passage: ClosedCells::key of its cells
-    // Per passage: the box of its cells' centres (arbitrate's `asked`: who may claim it).
-    struct Box {
-        Vec2 lo, hi;
-        void add(Vec2 q) { lo = {std::min(lo.x, q.x), std::min(lo.y, q.y)}, hi = {std::max(hi.x, q.x), std::max(hi.y, q.y)}; }
-        double distance(Vec2 q) const { return norm(Vec2{std::max({lo.x - q.x, 0.0, q.x - hi.x}), std::max({lo.y - q.y, 0.0, q.y - hi.y})}); }
-    };
-    std::vector<Box> box_;
+    std::vector<Box> box_;              // per passage: the box of its cells' centres (arbitrate's `asked`: who may claim it)
     std::vector<Claim> asked_claims_;   // arbitrate: the asked robots' claims, then made in robot order
     std::vector<char> relevant_;        // arbitrate: per passage, some asked robot claims it
+    std::vector<int> relevant_list_;    // the same passages, listed
     std::vector<std::vector<int>> side_closed_;  // per avoidable passage p and side s, [2p + s]: the cells a robot going around on s keeps out of, sorted
     std::vector<Claim> claims_;
 
@@ -4160,7 +4156,8 @@ private:
             for (int c : cells) {
                 passage_[c] = passages;
                 key = (key ^ (uint64_t)c) * 1099511628211ull;
-                box.add(grid.centre(c));
+                const Vec2 q = grid.centre(c);
+                box = {{std::min(box.lo.x, q.x), std::min(box.lo.y, q.y)}, {std::max(box.hi.x, q.x), std::max(box.hi.y, q.y)}};
             }
             box_.push_back(box);
             closed_key_.push_back(key | 1);  // never 0 (no cells)
@@ -4370,6 +4367,7 @@ private:
     Mat x_, eps_;
     std::vector<int> steps_, members_, ids_, order_;
     std::map<int, std::pair<Vec2, double>> first_seen_;  // by id: the goal and its distance when first seen (set_priorities)
+    std::vector<double> priority_key_;                   // set_priorities: a scene's robots' keys
     // The scenes of a plan (choose_scenes): scene b holds robots scene_robots_[b*K .. b*K + m)
     // (-1 after them), nearest to its seed scene_seed_[b] first; robot i's window is column
     // window_col_[i] of x_ (-1: none).
@@ -4500,14 +4498,15 @@ private:
         const int K = batch_.n;
         for (int k = 0; k < K; ++k) batch_.priority[(size_t)b * K + k] = 1;
         if (first == 1 || !crowd) return;
+        priority_key_.resize(m);
         for (int k = 0; k < m; ++k) {
             const int i = robots[k];
             auto seen = first_seen_.find(ids_[i]);
             if (seen == first_seen_.end() || !(seen->second.first == goal_[i]))
                 seen = first_seen_.insert_or_assign(ids_[i], std::make_pair(goal_[i], norm(goal_[i] - pos_[i]))).first;
+            priority_key_[k] = seen->second.second;
         }
-        priority_order(m, [&](int k) { return at_goal_[robots[k]] != 0; }, [&](int k) { return first_seen_[ids_[robots[k]]].second; },
-                       [&](int k) { return ids_[robots[k]]; }, order_);
+        priority_order(m, [&](int k) { return at_goal_[robots[k]] != 0; }, [&](int k) { return priority_key_[k]; }, [&](int k) { return ids_[robots[k]]; }, order_);
         for (int rank = 0; rank < m; ++rank) batch_.priority[(size_t)b * K + order_[rank]] = (float)priority_weight_of(rank, m, first);
     }
 

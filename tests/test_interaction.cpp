@@ -452,6 +452,14 @@ SceneBatch swap_pair(const ModelConfig& c) {
     s.count[0] = 2;
     return s;
 }
+// swap_pair's windows running straight through each other: each waypoint where the other starts at the end.
+Mat through_each_other(const ModelConfig& c) {
+    const int H = c.horizon;
+    Mat x = Mat::Zero(2, 2L * H);
+    for (int a = 0; a < 2; ++a)
+        for (int t = 0; t < H; ++t) x(0, (long)a * H + t) = (float)((a ? -0.6 : 0.6) * t / (H - 1) / c.window_scale);
+    return x;
+}
 }  // namespace
 
 TEST_CASE("window cost: the keep-right push turns a head-on pair to their right, equal and opposite, cost unchanged") {
@@ -461,10 +469,7 @@ TEST_CASE("window cost: the keep-right push turns a head-on pair to their right,
     open.set_map(WorldMap{});
     const int H = c.horizon;
     auto start = [&](int a, int k) { return (k ? s.origin[0].y : s.origin[0].x) + s.pose(k, a) * c.position_scale; };
-    // Windows that run straight through each other: each waypoint where the other starts at the end.
-    Mat x = Mat::Zero(2, 2L * H);
-    for (int a = 0; a < 2; ++a)
-        for (int t = 0; t < H; ++t) x(0, (long)a * H + t) = (float)((a ? -0.6 : 0.6) * t / (H - 1) / c.window_scale);
+    const Mat x = through_each_other(c);
     const WindowCost w;
     Mat plain = Mat::Zero(2, x.cols()), pushed = Mat::Zero(2, x.cols());
     const float K = 50;
@@ -498,9 +503,7 @@ TEST_CASE("window cost: priorities split a pair's pushes, the higher robot moved
     MapFields open;
     open.set_map(WorldMap{});
     const int H = c.horizon;
-    Mat x = Mat::Zero(2, 2L * H);  // as above: straight through each other
-    for (int a = 0; a < 2; ++a)
-        for (int t = 0; t < H; ++t) x(0, (long)a * H + t) = (float)((a ? -0.6 : 0.6) * t / (H - 1) / c.window_scale);
+    const Mat x = through_each_other(c);
     const WindowCost w;
     const float K = 50;
     Mat equal = Mat::Zero(2, x.cols()), split = Mat::Zero(2, x.cols());
