@@ -3428,7 +3428,7 @@ struct TrafficConfig {
     // aisle (a MovingAI map's one-cell aisle at cell 0.25) leaves a 0.046 band, which the 0.036
     // cells always hold, and is taken in turns wherever it falls (0.12, before 0.4: a 0.01 band,
     // held at about a quarter of wall offsets; docs/experiments.md, "Aisles as passages").
-    double free_clear = 0.102;
+    double free_clear = kPassableClearance;
     double lookahead = 1.2;        // a robot claims the first passage within this distance along its route
     double spare = 0;              // a claim from another mouth waits if it would enter before a holder is this far out
     double wait_back = 0.45;       // the nearest waiting robot waits this far out from its mouth,
@@ -3666,6 +3666,8 @@ inline const std::vector<PlannerSetting>& planner_settings() {
          +[](C& c) -> double& { return c.follower.replan_error; }},
         {"follower.filter_rate", 0.01, 9.99, "the safety filter's barrier rate, 1/s (below 1/dt)", nullptr, 0,
          +[](C& c) -> double& { return c.follower.filter.rate; }},
+        {"follower.filter_static_margin", 0, 1, "the safety filter's gap to obstacles and walls beyond touching, world units (tuned: what routes pass, kPassableClearance less the radius)", nullptr, 0,
+         +[](C& c) -> double& { return c.follower.filter.static_margin; }},
     };
     return table;
 }

@@ -2101,6 +2101,12 @@ inline Vec2 track_plan(const Agent& a, const std::vector<Vec2>& w, double ahead,
 // stops at its budget with the constraints nearly met (reported through `violated`).
 // The filter never adds a goal-directed term: with a "hold position" nominal it only ever
 // pushes agents apart.
+// Where a robot's centre may go: clearance (distance to the nearest obstacle or wall) at least
+// the robot radius 0.1 plus 0.002. Routes pass cells from here (RouteClearance::min), passages
+// count from here (traffic.free_clear), and the plan follower's filter keeps exactly this to the
+// map (follower_filter), so that no robot is routed where its filter will not let it go.
+constexpr double kPassableClearance = 0.102;
+
 struct SafetyFilterParams {
     double margin = 0.03;         // gap kept between agents beyond touching, world units, >= 0
     double static_margin = 0.01;  // gap kept to obstacles and walls beyond touching, world units, >= 0
@@ -2275,9 +2281,16 @@ constexpr double kMaxLookahead = 1000;  // FollowerConfig::lookahead: past a win
 // head-on start braking ~0.3 apart and crawl past each other; MA-DBP's guided windows already
 // keep them apart, and at 4 its teams of four took 2-3 % fewer steps with 0 collisions
 // (docs/experiments.md, "The follower's filter rate"). Demonstrations and the expert keep 2.5.
+//
+// It keeps kPassableClearance to the map, 0.002 beyond touching where SPEC's filter keeps 0.01:
+// a gap whose narrowest clearance is 0.102-0.11 (0.204-0.22 wide between two discs) is on a
+// route, and SPEC's margin froze the robot at its mouth for the rest of the episode. In crowds
+// among obstacles that was most of the timeouts (docs/experiments.md, "Routes the filter
+// lets through").
 inline SafetyFilterParams follower_filter() {
     SafetyFilterParams p;
     p.rate = 4;
+    p.static_margin = 0.002;  // kPassableClearance less the radius (a round number, so that settings round-trip)
     return p;
 }
 
@@ -2636,7 +2649,7 @@ struct ClosedCells {
 // step into a cell below `preferred` costs `narrow_cost` extra steps: wide ways are taken where
 // they are not much longer, as when `preferred` was a hard limit (before 0.4).
 struct RouteClearance {
-    double min = 0.102;       // passable at this clearance or more, world units (radius 0.1 + 0.002)
+    double min = kPassableClearance;  // passable at this clearance or more, world units (radius 0.1 + 0.002)
     double preferred = 0.13;  // a step into a cell with less costs narrow_cost extra, world units
     int narrow_cost = 8;      // extra cost of such a step, steps, in [0, 1000]
     int step_cost(float clear) const { return 1 + (clear < preferred ? narrow_cost : 0); }
@@ -2773,7 +2786,7 @@ public:
     static constexpr size_t kFieldCacheBytes = size_t(128) << 20;
     double cell = 0.036;        // planning cells, world units (the expert's)
     double clear = 0.13;        // the route prefers cells with this clearance (RouteClearance::preferred; the expert's inflate)
-    double min_clear = 0.102;   // and passes cells with this much (RouteClearance::min)
+    double min_clear = kPassableClearance;  // and passes cells with this much (RouteClearance::min)
     int narrow_cost = 8;        // extra cost of a step into a cell below `clear` (RouteClearance::narrow_cost)
     double view_clear = 0.1;    // a subgoal is visible when the segment to it keeps this clearance (robot radius)
     // Cells either side of a robot's route a cached field keeps (RouteField's band; 0: the whole
@@ -3160,7 +3173,7 @@ private:
 struct ExpertParams {
     double cell = 0.036;          // planning cell, world units (distance per step at cruise)
     double inflate = 0.13;        // clearance preferred from obstacles and walls (radius + 0.03), world units
-    double min_clear = 0.102;     // clearance a planned centre keeps at least (radius + 0.002), world units
+    double min_clear = kPassableClearance;  // clearance a planned centre keeps at least (radius + 0.002), world units
     int narrow_cost = 8;          // extra cost of a step into a cell closer than `inflate`, steps, [0, 1000]
     double buffer = 0.04;         // planned centres of two agents stay >= 2 r + buffer apart (the filter keeps 2 r + 0.03), world units
     double conflict_cost = 8;     // extra cost of a step inside another agent's reservation, steps

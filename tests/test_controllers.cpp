@@ -410,6 +410,39 @@ TEST_CASE("PlanFollower: its filter's faster barrier lets robots close in sooner
     CHECK_NOTHROW(PlanFollower(LinePlanner{}, fast).act(w));
 }
 
+TEST_CASE("PlanFollower: its filter lets a robot through every gap a route passes; SPEC's margin stops it in the narrowest") {
+    // One number says where a robot's centre may go: routes, passages and the follower's filter.
+    CHECK(RouteClearance{}.min == kPassableClearance);
+    CHECK(RouteGuide{}.min_clear == kPassableClearance);
+    CHECK(ExpertParams{}.min_clear == kPassableClearance);
+    CHECK(std::abs(WorldConfig{}.radius + FollowerConfig{}.filter.static_margin - kPassableClearance) < 1e-12);
+    CHECK(SafetyFilterParams{}.static_margin == 0.01);  // SPEC 3.2's, the expert's and the straight line's
+    // Two discs whose gap keeps 0.105 at its narrowest: passable for a route (>= 0.102), not
+    // for a filter keeping 0.01 beyond touching (0.11).
+    const double throat = 0.105;
+    WorldMap map;
+    for (double side : {1.0, -1.0}) {  // walled off up to the world's edges: no way around
+        map.discs.push_back({{0, side * (throat + 0.1)}, 0.1});
+        map.boxes.push_back({{-0.02, side > 0 ? throat + 0.1 : -1.2}, {0.02, side > 0 ? 1.2 : -(throat + 0.1)}});
+    }
+    RouteGuide guide;
+    const RouteGoal sub = guide.subgoal(map, {-0.6, 0}, {0.6, 0}, 0.9);
+    CHECK(sub.goal.x > 0.1);  // the route goes through the gap
+    CHECK(std::abs(sub.goal.y) < 0.05);
+    auto through = [&](double static_margin) {
+        World w(map);
+        w.add_agent({-0.6, 0}, {0.6, 0});
+        FollowerConfig fc;
+        fc.filter.static_margin = static_margin;
+        PlanFollower f(LinePlanner{}, fc);
+        while (!w.done()) w.step(f.act(w));
+        CHECK(w.metrics().collisions() == 0);
+        return w.metrics().success;
+    };
+    CHECK(through(FollowerConfig{}.filter.static_margin));
+    CHECK_FALSE(through(SafetyFilterParams{}.static_margin));  // frozen at the gap's mouth
+}
+
 TEST_CASE("wavefront: steps around a wall, unreachable behind a closed one") {
     WorldMap m;
     m.boxes.push_back({{-1.2, -0.05}, {0.6, 0.05}});  // gap from 0.6 to 1.2 on the right

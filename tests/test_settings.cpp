@@ -67,6 +67,7 @@ TEST_CASE("settings: the presets: tuned is the default; paper is plain DDIM with
     CHECK(t.follower.lookahead == 2.0);
     CHECK(t.follower.priority_weight == 4);
     CHECK(t.follower.filter.rate == 4);
+    CHECK(std::abs(t.follower.filter.static_margin - 0.002) < 1e-12);  // what routes pass (kPassableClearance)
     CHECK(t.neighbourhood.cover == 3);
     CHECK(t.follower.replan_every == 4);  // a quarter of the shipped window
     // The paper's planner.
@@ -86,6 +87,7 @@ TEST_CASE("settings: the presets: tuned is the default; paper is plain DDIM with
     CHECK(p.follower.replan_error == 0);
     CHECK(p.follower.replan_every == 8);  // SPEC 8: m = H/2 of the shipped window
     CHECK(p.follower.filter.rate == SafetyFilterParams{}.rate);
+    CHECK(p.follower.filter.static_margin == SafetyFilterParams{}.static_margin);
     // Resolved for a model: automatic values become the model's.
     ModelConfig c = tiny_config();  // its own S is 5
     SamplerConfig ts = t.sampler_config(c), ps = p.sampler_config(c);
