@@ -101,6 +101,8 @@
 //        its scenes' robots claim (plan_robot among 1024: 1.3 ms, was 7.2).
 //        guidance.priority 4 (SceneBatch::priority): in a team larger than a scene, a scene's
 //        robots give way in its guidance by priority_order, as the expert's robots do.
+//        follower.filter_static_margin 0.005 (paper preset 0.01): the follower's filter lets a
+//        robot through most gaps its route passes (kPassableClearance 0.102).
 //   0.3  PlannerConfig: every planner setting in one struct, its defaults written once.
 //        PlannerConfig::tuned() (the default) and paper() (the paper's planner) presets.
 //        planner_settings(): one table behind validate(), set(), --set and --list-settings.
@@ -3666,7 +3668,7 @@ inline const std::vector<PlannerSetting>& planner_settings() {
          +[](C& c) -> double& { return c.follower.replan_error; }},
         {"follower.filter_rate", 0.01, 9.99, "the safety filter's barrier rate, 1/s (below 1/dt)", nullptr, 0,
          +[](C& c) -> double& { return c.follower.filter.rate; }},
-        {"follower.filter_static_margin", 0, 1, "the safety filter's gap to obstacles and walls beyond touching, world units (tuned: what routes pass, kPassableClearance less the radius)", nullptr, 0,
+        {"follower.filter_static_margin", 0, 1, "the safety filter's gap kept to obstacles and walls beyond touching, world units (routes pass cells 0.002 beyond)", nullptr, 0,
          +[](C& c) -> double& { return c.follower.filter.static_margin; }},
     };
     return table;

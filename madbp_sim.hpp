@@ -31,6 +31,8 @@
 //        made again when a walk reads past it, so routes are those of whole fields; steps_to()
 //        returns a whole one. obstacles_near: a map's obstacles near an area (local_crop and
 //        RouteGuide's views read only those).
+//        kPassableClearance (0.102): routes and passages share it. follower_filter() keeps 0.005
+//        to the map (was SPEC's 0.01, which froze robots in gaps their routes pass).
 //   0.3  PassageControl and its parameters move to madbp.hpp (the planner's traffic conventions).
 //        ClearanceGrid moves to Section 2; ReachGrid is gone (detail::all_reachable on its layout).
 //        movingai_scene / load_movingai_scene: MovingAI MAPF benchmark maps and scenarios as scenes.
@@ -2102,9 +2104,9 @@ inline Vec2 track_plan(const Agent& a, const std::vector<Vec2>& w, double ahead,
 // The filter never adds a goal-directed term: with a "hold position" nominal it only ever
 // pushes agents apart.
 // Where a robot's centre may go: clearance (distance to the nearest obstacle or wall) at least
-// the robot radius 0.1 plus 0.002. Routes pass cells from here (RouteClearance::min), passages
-// count from here (traffic.free_clear), and the plan follower's filter keeps exactly this to the
-// map (follower_filter), so that no robot is routed where its filter will not let it go.
+// the robot radius 0.1 plus 0.002. Routes pass cells from here (RouteClearance::min) and passages
+// count from here (traffic.free_clear); the plan follower's filter keeps a little more
+// (follower_filter).
 constexpr double kPassableClearance = 0.102;
 
 struct SafetyFilterParams {
@@ -2282,15 +2284,17 @@ constexpr double kMaxLookahead = 1000;  // FollowerConfig::lookahead: past a win
 // keep them apart, and at 4 its teams of four took 2-3 % fewer steps with 0 collisions
 // (docs/experiments.md, "The follower's filter rate"). Demonstrations and the expert keep 2.5.
 //
-// It keeps kPassableClearance to the map, 0.002 beyond touching where SPEC's filter keeps 0.01:
-// a gap whose narrowest clearance is 0.102-0.11 (0.204-0.22 wide between two discs) is on a
-// route, and SPEC's margin froze the robot at its mouth for the rest of the episode. In crowds
-// among obstacles that was most of the timeouts (docs/experiments.md, "Routes the filter
-// lets through").
+//
+// It keeps 0.005 beyond touching to the map where SPEC's filter keeps 0.01: a gap whose
+// narrowest clearance is 0.102-0.11 (0.204-0.22 wide between two discs) is on a route, and SPEC's
+// margin froze the robot at its mouth for the rest of the episode; in crowds among obstacles that
+// was most of the timeouts. Keeping only what routes pass (0.002) let robots jammed by their
+// neighbours touch a wedge between two obstacles (256 robots); 0.005 absorbs that and leaves the
+// freeze to gaps of 0.204-0.21 (docs/experiments.md, "Routes the filter lets through").
 inline SafetyFilterParams follower_filter() {
     SafetyFilterParams p;
     p.rate = 4;
-    p.static_margin = 0.002;  // kPassableClearance less the radius (a round number, so that settings round-trip)
+    p.static_margin = 0.005;
     return p;
 }
 

@@ -410,16 +410,19 @@ TEST_CASE("PlanFollower: its filter's faster barrier lets robots close in sooner
     CHECK_NOTHROW(PlanFollower(LinePlanner{}, fast).act(w));
 }
 
-TEST_CASE("PlanFollower: its filter lets a robot through every gap a route passes; SPEC's margin stops it in the narrowest") {
-    // One number says where a robot's centre may go: routes, passages and the follower's filter.
+TEST_CASE("PlanFollower: its filter lets a robot through a gap on its route that SPEC's margin closes") {
+    // One number says where a robot's centre may go for routes and passages; the follower's
+    // filter keeps a little more, SPEC's filter more still.
     CHECK(RouteClearance{}.min == kPassableClearance);
     CHECK(RouteGuide{}.min_clear == kPassableClearance);
     CHECK(ExpertParams{}.min_clear == kPassableClearance);
-    CHECK(std::abs(WorldConfig{}.radius + FollowerConfig{}.filter.static_margin - kPassableClearance) < 1e-12);
+    const double follower_clear = WorldConfig{}.radius + FollowerConfig{}.filter.static_margin;
+    CHECK(follower_clear >= kPassableClearance);
+    CHECK(follower_clear < WorldConfig{}.radius + SafetyFilterParams{}.static_margin);
     CHECK(SafetyFilterParams{}.static_margin == 0.01);  // SPEC 3.2's, the expert's and the straight line's
-    // Two discs whose gap keeps 0.105 at its narrowest: passable for a route (>= 0.102), not
-    // for a filter keeping 0.01 beyond touching (0.11).
-    const double throat = 0.105;
+    // Two discs whose gap keeps 0.107 at its narrowest: passable for a route (>= 0.102) and the
+    // follower (0.105), not for a filter keeping 0.01 beyond touching (0.11).
+    const double throat = 0.107;
     WorldMap map;
     for (double side : {1.0, -1.0}) {  // walled off up to the world's edges: no way around
         map.discs.push_back({{0, side * (throat + 0.1)}, 0.1});

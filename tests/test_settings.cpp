@@ -67,7 +67,7 @@ TEST_CASE("settings: the presets: tuned is the default; paper is plain DDIM with
     CHECK(t.follower.lookahead == 2.0);
     CHECK(t.follower.priority_weight == 4);
     CHECK(t.follower.filter.rate == 4);
-    CHECK(std::abs(t.follower.filter.static_margin - 0.002) < 1e-12);  // what routes pass (kPassableClearance)
+    CHECK(t.follower.filter.static_margin == 0.005);
     CHECK(t.neighbourhood.cover == 3);
     CHECK(t.follower.replan_every == 4);  // a quarter of the shipped window
     // The paper's planner.
