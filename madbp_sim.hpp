@@ -183,7 +183,8 @@ inline std::string number_text(double v) {
 //     files: read_bounded, EnvironmentError, check_output, OutputLock, write_file_atomic
 //   7 controllers: Policy, StepModel                                             [3]
 //   8 CLF-QP: ClfQpParams, clf_qp_solve, clf_qp_action, ClfQp                    [3.1]
-//   9 tracker and safety filter: track_waypoint, track_plan, safety_filter       [3.2]
+//   9 tracker and safety filter: track_waypoint, track_plan, kPassableClearance,
+//     safety_filter                                                               [3.2]
 //  10 plans: Plan, Planner, validate_plan, waypoint_now, LinePlanner, PlanFollower [3.2, 3.5, 8]
 //  11 episodes and evaluation: EpisodeLog, run_episode, default_max_steps, evaluate [9, 10]
 //  12 guided expert: ClosedCells, RouteClearance, wavefront, RouteGoal, RouteField (whole or band
@@ -2087,6 +2088,12 @@ inline Vec2 track_plan(const Agent& a, const std::vector<Vec2>& w, double ahead,
     return track_waypoint(a.pos, a.vel, target, v_ref, m, prm, lim);
 }
 
+// Where a robot's centre may go: clearance (distance to the nearest obstacle or wall) at least
+// the robot radius 0.1 plus 0.002. Routes pass cells from here (RouteClearance::min) and passages
+// count from here (traffic.free_clear); the plan follower's filter keeps a little more
+// (follower_filter).
+constexpr double kPassableClearance = 0.102;
+
 // A control-barrier-function filter, solved for the whole team at once. For every pair of
 // agents closer than `range` (and every obstacle or wall surface within `range` of an agent),
 // with gap h = distance - (sum of radii + margin) and unit direction n from the neighbour to
@@ -2103,12 +2110,6 @@ inline Vec2 track_plan(const Agent& a, const std::vector<Vec2>& w, double ahead,
 // stops at its budget with the constraints nearly met (reported through `violated`).
 // The filter never adds a goal-directed term: with a "hold position" nominal it only ever
 // pushes agents apart.
-// Where a robot's centre may go: clearance (distance to the nearest obstacle or wall) at least
-// the robot radius 0.1 plus 0.002. Routes pass cells from here (RouteClearance::min) and passages
-// count from here (traffic.free_clear); the plan follower's filter keeps a little more
-// (follower_filter).
-constexpr double kPassableClearance = 0.102;
-
 struct SafetyFilterParams {
     double margin = 0.03;         // gap kept between agents beyond touching, world units, >= 0
     double static_margin = 0.01;  // gap kept to obstacles and walls beyond touching, world units, >= 0
@@ -2283,7 +2284,6 @@ constexpr double kMaxLookahead = 1000;  // FollowerConfig::lookahead: past a win
 // head-on start braking ~0.3 apart and crawl past each other; MA-DBP's guided windows already
 // keep them apart, and at 4 its teams of four took 2-3 % fewer steps with 0 collisions
 // (docs/experiments.md, "The follower's filter rate"). Demonstrations and the expert keep 2.5.
-//
 //
 // It keeps 0.005 beyond touching to the map where SPEC's filter keeps 0.01: a gap whose
 // narrowest clearance is 0.102-0.11 (0.204-0.22 wide between two discs) is on a route, and SPEC's
