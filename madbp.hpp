@@ -3424,6 +3424,7 @@ void sample_windows(Denoiser& model, const NoiseSchedule& schedule, const SceneB
 // passage_replan.
 struct TrafficConfig {
     bool take_turns = true;        // robots that would meet head-on in a one-lane passage take turns (false: each heads for its goal)
+    bool make_way = true;          // a robot parked in a passage leaves it ahead of a robot passing through (PassageControl)
     int passage_replan = 4;        // while robots may meet in a passage, a plan asks to be replaced after this many steps (0: never)
     double one_lane_width = 0.47;  // passages narrower than this, wall to wall, are one-lane (on the grid: 0.45 always, 0.50 never)
     // A robot's centre fits where the clearance is >= this: RouteClearance::min, so a 0.25-wide
@@ -3632,6 +3633,8 @@ inline const std::vector<PlannerSetting>& planner_settings() {
          +[](C& c) -> bool& { return c.guidance.cost.geodesic; }},
         {"traffic.take_turns", 0, 1, "robots meeting head-on in a one-lane passage take turns", nullptr, 0,
          +[](C& c) -> bool& { return c.traffic.take_turns; }},
+        {"traffic.make_way", 0, 1, "a robot whose goal is in a one-lane passage leaves it ahead of robots passing through", nullptr, 0,
+         +[](C& c) -> bool& { return c.traffic.make_way; }},
         {"traffic.passage_replan", 0, 1000, "while robots may meet in a passage, replan after this many steps (0 = off)", nullptr, 0,
          +[](C& c) -> int& { return c.traffic.passage_replan; }},
         {"traffic.one_lane_width", 0, 100, "passages narrower than this, wall to wall, are one-lane", nullptr, 0,
@@ -3794,8 +3797,20 @@ public:
         point.assign(goal, goal + n);
         around_.assign(n, -1);
         around_side_.assign(n, -1);
+        plug_of_.assign(n, -1);
+        plugs_.clear();
         claims_.clear();
+        claim_cells_.clear();
+        made_way_ = false;
         if (mouths_.empty()) return 0;
+        // Robots in a passage whose goal lies in it too (make_way): they may stand in the way of
+        // robots passing through.
+        parked_.clear();
+        if (p.make_way)
+            for (int i = 0; i < n; ++i) {
+                const int q = cell_passage[grid.index(pos[i])];
+                if (q >= 0 && cell_passage[grid.index(goal[i])] == q) parked_.push_back(i);
+            }
         const int max_cells = 2 + (int)std::ceil(p.lookahead / grid.cell);
         // Only passages an asked robot claims are decided, so only robots whose route may reach
         // one claim: a route's cells lie within (max_cells + 3) sqrt(2) cells of the robot (its
@@ -3811,6 +3826,10 @@ public:
                     asked_claims_.push_back(c);
                     if (!relevant_[c.passage]) relevant_[c.passage] = 1, relevant_list_.push_back(c.passage);
                 }
+            for (int i : parked_) {  // an asked robot parked in a passage learns whether to make way
+                const int q = cell_passage[grid.index(pos[i])];
+                if (asked[i] && !relevant_[q]) relevant_[q] = 1, relevant_list_.push_back(q);
+            }
         }
         size_t next_asked = 0;
         for (int i = 0; i < n; ++i) {
@@ -3852,6 +3871,14 @@ public:
                 }
             }
             if (p.spread > 0 && avoidable_[lead->passage]) spread_around(guide, map, lead->passage, pos, goal, ids);
+            // Who queues at which mouth: the losers at theirs; robots parked in the way of a holder
+            // passing through (make_way) at the mouth it leaves by, ahead of it: backing out the
+            // other way would meet it head-on, and staying puts it nose to nose with them.
+            // Who queues at which mouth (waiters_: robot, mouth): the losers at theirs, then those
+            // make_way sends out.
+            waiters_.clear();
+            for (int b : losers_) waiters_.push_back(claims_[b].robot), waiters_.push_back(claims_[b].mouth);
+            if (p.make_way) waiting += make_way(guide, map, cell_passage, *lead, a, pos, goal, wait);
             // The queue at each waiting mouth: its places from the mouth out, each to the robot
             // nearest it of those left (robots keep their places as they walk to them).
             for (int m = 0; m < (int)mouths_.size(); ++m) {
@@ -3859,22 +3886,23 @@ public:
                 for (int place = 0;; ++place) {
                     const Vec2 spot = waiting_point(grid, mouths_[m], p.wait_back + place * p.queue_spacing);
                     int best = -1;
-                    for (int b : losers_) {
-                        const int r = claims_[b].robot;
-                        if (claims_[b].mouth == m && !wait[r] && (best < 0 || norm(pos[r] - spot) < norm(pos[claims_[best].robot] - spot))) best = b;
+                    for (size_t k = 0; k < waiters_.size(); k += 2) {
+                        const int r = waiters_[k];
+                        if (waiters_[k + 1] == m && !wait[r] && (best < 0 || norm(pos[r] - spot) < norm(pos[best] - spot))) best = r;
                     }
                     if (best < 0) break;
-                    wait[claims_[best].robot] = kWait;
-                    point[claims_[best].robot] = spot;
+                    wait[best] = kWait;
+                    point[best] = spot;
                     ++waiting;
                 }
             }
         }
         return waiting;
     }
-    // Whether the last arbitrate() saw claims on one passage from two of its mouths (robots that may
-    // meet in it), of the passages it decided.
+    // Whether the last arbitrate() saw claims on one passage from two of its mouths, or sent a
+    // parked robot out ahead of a holder (robots that may meet in it), of the passages it decided.
     bool contested() const {
+        if (made_way_) return true;
         for (size_t a = 0; a < claims_.size(); ++a)
             for (size_t b = 0; b < a; ++b)
                 if (claims_[a].passage == claims_[b].passage && claims_[a].mouth != claims_[b].mouth) return true;
@@ -3884,6 +3912,7 @@ public:
     ClosedCells closed_to(int i) const {
         if (i < 0 || i >= (int)around_.size() || around_[i] < 0) return {};
         if (around_side_[i] >= 0) return side_cells(around_[i], around_side_[i]);
+        if (plug_of_[i] >= 0) return {nullptr, -1, plugs_[plug_of_[i]].key, &plugs_[plug_of_[i]].cells};
         return {&passage_, around_[i], closed_key_[around_[i]]};
     }
 
@@ -3891,6 +3920,8 @@ private:
     struct Claim {
         int robot = -1, passage = -1, mouth = -1;
         int entry = 0, exit = 0;  // route cells before the passage (0: in it) and before its last cell there
+        bool parks = false;       // its goal lies in the passage (make_way)
+        int cells_begin = 0, cells_end = 0;  // claim_cells_[begin, end): its route's cells in the passage, ahead of it
     };
     WorldMap map_;
     double made_with_[6] = {};  // the parameters and cell the passages were found with
@@ -3904,6 +3935,16 @@ private:
     std::vector<int> relevant_list_;    // the same passages, listed
     std::vector<std::vector<int>> side_closed_;  // per avoidable passage p and side s, [2p + s]: the cells a robot going around on s keeps out of, sorted
     std::vector<Claim> claims_;
+    std::vector<int> claim_cells_;  // arbitrate: the claims' route cells in their passages
+    std::vector<int> parked_;       // arbitrate: robots in a passage that holds their goal (make_way)
+    std::vector<int> waiters_;      // arbitrate: (robot, mouth) pairs that queue at one passage
+    bool made_way_ = false;         // arbitrate: some parked robot was sent out ahead of a holder
+    struct Plug {
+        uint64_t key;
+        std::vector<int> cells;  // sorted
+    };
+    std::vector<Plug> plugs_;       // arbitrate: the passage cells around robots parked in the way of another's goal
+    std::vector<int> plug_of_;      // per robot: the plug it goes around (an index into plugs_), or -1
 
     // Robot i's claim (`c`): the first passage on its route within max_cells route cells, where
     // the route enters and leaves it, and the mouth it enters by; false when it claims none.
@@ -3915,20 +3956,127 @@ private:
         for (int j = 0; j < (int)route_.size() && c.passage < 0; ++j)
             if (cell_passage[route_[j]] >= 0) c.passage = cell_passage[route_[j]], c.entry = j;
         if (c.passage < 0) return false;
+        c.parks = params.make_way && cell_passage[guide.grid().index(goal[i])] == c.passage;
+        if (c.parks && (int)route_.size() == max_cells)  // the whole way to its goal: who it passes there (make_way)
+            guide.route_cells(map, pos[i], goal[i], std::numeric_limits<int>::max(), route_);
         c.exit = c.entry;
         while (c.exit + 1 < (int)route_.size() && cell_passage[route_[c.exit + 1]] == c.passage) ++c.exit;
+        c.cells_begin = (int)claim_cells_.size();
+        claim_cells_.insert(claim_cells_.end(), route_.begin() + std::max(c.entry, 1), route_.begin() + c.exit + 1);
+        c.cells_end = (int)claim_cells_.size();
         c.mouth = c.entry > 0 ? mouth_[route_[c.entry - 1]] : -1;
         if (c.mouth < 0 || mouths_[c.mouth].passage != c.passage) {
-            // In the passage (or entered beside a mouth): the nearest mouth but the one the route leaves by.
+            // In the passage (or entered beside a mouth): the nearest mouth but the one the route
+            // leaves by; when the route ends in the passage (at a goal there, or past the
+            // lookahead in a long one), the mouth it heads away from most (not the nearest: a
+            // robot past a long corridor's middle has not come from the mouth ahead of it).
             const int leaves = c.exit + 1 < (int)route_.size() ? mouth_[route_[c.exit + 1]] : -1;
+            const Vec2 end = guide.grid().centre(route_[c.exit]);
+            const bool heading = leaves < 0 && norm(end - pos[i]) >= 2 * guide.grid().cell;
+            auto away = [&](int m) { return heading ? norm(mouths_[m].at - end) - norm(mouths_[m].at - pos[i]) : -norm(mouths_[m].at - pos[i]); };
             c.mouth = -1;
             for (int m = 0; m < (int)mouths_.size(); ++m)
-                if (mouths_[m].passage == c.passage && m != leaves &&
-                    (c.mouth < 0 || norm(mouths_[m].at - pos[i]) < norm(mouths_[c.mouth].at - pos[i])))
-                    c.mouth = m;
+                if (mouths_[m].passage == c.passage && m != leaves && (c.mouth < 0 || away(m) > away(c.mouth))) c.mouth = m;
             if (c.mouth < 0) return false;
         }
         return true;
+    }
+    // Robots whose goals lie in a passage (parked_; make_way), for passage lead.passage, whose
+    // claims start at claims_[first]:
+    // - One that stands in the way of a holder passing through queues at the mouth the holder
+    //   leaves by, ahead of it: backing out the other way would meet it head-on, and staying would
+    //   hold them nose to nose.
+    // - A claim that would pass one whose goal it would pass too (the two goals in the other's
+    //   order) goes in by the other mouth where there is a way (kGoAround, around a plug of cells
+    //   at the other); where there is none (the corridor is the only way, as in a maze) both
+    //   queue at the mouth on its side, which it reaches first, so it enters first.
+    // Adds to waiters_; returns how many go around.
+    int make_way(RouteGuide& guide, const WorldMap& map, const std::vector<int>& cell_passage, const Claim& lead, size_t first, const Vec2* pos,
+                 const Vec2* goal, std::vector<char>& wait) {
+        const ClearanceGrid& grid = guide.grid();
+        auto queued = [&](int i) {
+            for (size_t k = 0; k < waiters_.size(); k += 2)
+                if (waiters_[k] == i) return true;
+            return false;
+        };
+        auto queue = [&](int i, int m) {
+            if (!queued(i)) waiters_.push_back(i), waiters_.push_back(m), made_way_ = true;
+        };
+        // The mouth of the passage nearest `from` of those nearer `from` than `other`, or -1.
+        auto mouth_beside = [&](Vec2 from, Vec2 other, int except) {
+            int out = -1;
+            for (int m = 0; m < (int)mouths_.size(); ++m)
+                if (mouths_[m].passage == lead.passage && m != except && norm(mouths_[m].at - from) < norm(mouths_[m].at - other) &&
+                    (out < 0 || norm(mouths_[m].at - from) < norm(mouths_[out].at - from)))
+                    out = m;
+            return out;
+        };
+        int around = 0;
+        for (int i : parked_) {
+            if (lead.parks || i == lead.robot || cell_passage[grid.index(pos[i])] != lead.passage || queued(i) || !in_the_way(grid, lead, pos[i])) continue;
+            const int out = mouth_beside(pos[i], pos[lead.robot], lead.mouth);
+            if (out >= 0) queue(i, out);
+        }
+        for (size_t b = first; b < claims_.size(); ++b) {
+            const Claim& c = claims_[b];
+            if (c.passage != lead.passage || !c.parks || queued(c.robot)) continue;
+            for (int j : parked_) {
+                if (j == c.robot || cell_passage[grid.index(pos[j])] != c.passage || !passes(grid, c, goal[c.robot], pos[j]) ||
+                    !passes(grid, c, goal[c.robot], goal[j]))
+                    continue;
+                const ClosedCells plug = plug_at(grid, c.passage, pos[j], pos[c.robot], goal[c.robot]);
+                if (guide.walk_steps(map, pos[c.robot], goal[c.robot], plug) < RouteGuide::kRouteUnreachable) {
+                    wait[c.robot] = kGoAround;
+                    around_[c.robot] = c.passage;
+                    plug_of_[c.robot] = (int)plugs_.size() - 1;
+                    ++around;
+                } else if (const int m = mouth_beside(pos[c.robot], pos[j], -1); m >= 0) {
+                    queue(c.robot, m);
+                    queue(j, m);
+                }
+                break;
+            }
+        }
+        return around;
+    }
+    // Whether a robot at `at` stands in the way of claim c: within two radii (2 free_clear) of a
+    // cell of its route in the passage, ahead of it.
+    bool in_the_way(const ClearanceGrid& grid, const Claim& c, Vec2 at) const {
+        for (int k = c.cells_begin; k < c.cells_end; ++k)
+            if (norm(grid.centre(claim_cells_[k]) - at) < 2 * params.free_clear) return true;
+        return false;
+    }
+    // Whether claim c's robot passes a robot at `at` on its way to `goal`: the cell of its route in
+    // the passage nearest `at` is within two radii (2 free_clear) and before the goal's cell (a
+    // robot beside or beyond the goal is not passed, so of two robots whose goals lie in one
+    // corridor in the other's order, one passes the other, not both).
+    bool passes(const ClearanceGrid& grid, const Claim& c, Vec2 goal, Vec2 at) const {
+        const int goal_cell = grid.index(goal);
+        int nearest = -1;
+        double best = 2 * params.free_clear;
+        for (int k = c.cells_begin; k < c.cells_end; ++k) {
+            const double d = norm(grid.centre(claim_cells_[k]) - at);
+            if (d < best) best = d, nearest = k;
+            if (claim_cells_[k] == goal_cell) return nearest >= 0 && nearest < k;
+        }
+        return nearest >= 0;
+    }
+    // A new plug (plugs_.back()) for a robot going from `from` to `goal`: the cells of passage q
+    // within two radii (2 free_clear) of the centre of the cell at `at`, but for the robot's own
+    // cell and its goal's (goals may lie one map cell, 0.25, apart); its key names the cells.
+    ClosedCells plug_at(const ClearanceGrid& grid, int q, Vec2 at, Vec2 from, Vec2 goal) {
+        const int k0 = grid.index(at), reach = (int)std::ceil(2 * params.free_clear / grid.cell);
+        const int start = grid.index(from), end = grid.index(goal);
+        const Vec2 centre = grid.centre(k0);
+        Plug plug{closed_key_[q] ^ (0xC2B2AE3D27D4EB4Full * (uint64_t)(k0 + 3)) ^ (0x165667B19E3779F9ull * (uint64_t)(start + 5)) ^
+                      (0x27D4EB2F165667C5ull * (uint64_t)(end + 7)), {}};
+        for (int row = std::max(0, k0 / grid.n - reach); row <= std::min(grid.n - 1, k0 / grid.n + reach); ++row)
+            for (int col = std::max(0, k0 % grid.n - reach); col <= std::min(grid.n - 1, k0 % grid.n + reach); ++col) {
+                const int k = row * grid.n + col;
+                if (passage_[k] == q && k != start && k != end && norm(grid.centre(k) - centre) < 2 * params.free_clear) plug.cells.push_back(k);
+            }
+        plugs_.push_back(std::move(plug));
+        return {nullptr, -1, plugs_.back().key, &plugs_.back().cells};
     }
     // Where the robot waits that is `distance` out from mouth m: right of the way in, left, or on it,
     // the first point that fits (clearance >= free_clear + 0.04) outside any passage.
@@ -3948,11 +4096,13 @@ private:
     ClosedCells side_cells(int p, int s) const {
         return {nullptr, -1, closed_key_[p] ^ (0x9E3779B97F4A7C15ull * (uint64_t)(s + 1)), &side_closed_[2 * p + s]};
     }
-    // Whether claim a comes before b on their passage: the nearer (fewer route cells before
+    // Whether claim a comes before b on their passage: one passing through before one whose
+    // goal lies in it (else a robot parked in a corridor blocks it for good), then the nearer (fewer route cells before
     // it), then the one with less of it ahead, then the lower id (robots without one, no ids or
     // id < 0, after those with one), then the lower index. By id, not index, a robot planning for
     // itself (the others listed in another order) decides as the team's plan does.
     static bool before(const int* ids, const Claim& a, const Claim& b) {
+        if (a.parks != b.parks) return b.parks;
         if (a.entry != b.entry) return a.entry < b.entry;
         if (a.exit != b.exit) return a.exit < b.exit;
         auto rank = [&](const Claim& c) { return ids && ids[c.robot] >= 0 ? ids[c.robot] : std::numeric_limits<int>::max(); };
@@ -4447,10 +4597,11 @@ private:
             passages_.arbitrate(guide_, map, n, pos_.data(), goal_.data(), at_goal_.data(), waiting_, wait_point_, ids_.data(), in_scene_.data());
         }
         route_.resize(n);
+        // A waiting robot is routed to its waiting point like to a goal: one that makes way may
+        // have the length of a corridor to go.
         for (int i = 0; i < n; ++i)
-            if (in_scene_[i]) route_[i] = waiting_[i] == PassageControl::kWait ? RouteGoal{wait_point_[i], true}
-                        : route_goal(guide_, c, map, pos_[i], goal_[i],
-                                     waiting_[i] == PassageControl::kGoAround ? passages_.closed_to(i) : ClosedCells{});
+            if (in_scene_[i]) route_[i] = route_goal(guide_, c, map, pos_[i], waiting_[i] == PassageControl::kWait ? wait_point_[i] : goal_[i],
+                                                     waiting_[i] == PassageControl::kGoAround ? passages_.closed_to(i) : ClosedCells{});
         // Each neighbourhood scene draws its own noise, seeded by the plan and its seed robot's id.
         const uint64_t plan_seed = local ? rng_.next_u64() : 0;
         if (local) batch_.noise_seed.resize(scenes);
