@@ -14,8 +14,9 @@ namespace {
 // A wall across the world at y = 0 with a gap of `width` at x = x0, and (when half_length > 0)
 // a corridor of that width through the gap, from y = -half_length to half_length. free_standing:
 // the corridor walls only, no wall across the world (a way around).
-WorldMap corridor_map(double width, double half_length, bool free_standing = false, double x0 = 0) {
+WorldMap corridor_map(double width, double half_length, bool free_standing = false, double x0 = 0, double half_size = WorldMap{}.half_size) {
     WorldMap m;
+    m.half_size = half_size;
     const double h = m.half_size, w = 0.5 * width, t = 0.05;
     if (!free_standing) {
         m.boxes.push_back({{-h, -t}, {x0 - w, t}});
@@ -234,6 +235,71 @@ TEST_CASE("passages: a robot that arrives after the other is out goes on; one in
     Turns queue = arbitrate(map, {{0, -0.6}, {0, 0.7}, {0, 1.0}}, {{0, 0.9}, {0, -0.9}, {0.1, -0.7}});
     REQUIRE(queue.wait == std::vector<char>{kGoOn, kWait, kWait});
     CHECK(norm(queue.point[1] - queue.point[2]) >= 0.25);
+}
+
+TEST_CASE("passages: a robot parked in a corridor makes way for one passing through, out of the mouth that one leaves by") {
+    // A one-lane corridor 0.3 wide from y = -1.5 to 1.5, the only way between the world's halves.
+    const WorldMap map = corridor_map(0.3, 1.5, false, 0, 2.4);
+    const std::vector<Vec2> pos{{0, 0.3}, {0, -0.6}}, goal{{0, 0.3}, {0, 2.2}};
+    const Turns t = arbitrate(map, pos, goal, {1, 0});
+    CHECK(t.wait[1] == kGoOn);
+    REQUIRE(t.wait[0] == kWait);
+    CHECK(t.point[0].y > 1.5);  // ahead of robot 1, out of the top
+    check_waiting_point(map, t.point[0]);
+    // Without make_way it stays (and the two meet nose to nose).
+    PassageControl off;
+    off.params.make_way = false;
+    CHECK(arbitrate(map, pos, goal, {1, 0}, &off).wait == std::vector<char>{kGoOn, kGoOn});
+    // Behind robot 1, or beyond where its route reaches, it stays.
+    CHECK(arbitrate(map, {{0, -1.2}, {0, -0.6}}, {{0, -1.2}, {0, 2.2}}, {1, 0}).wait == std::vector<char>{kGoOn, kGoOn});
+    // On its way to a goal in the corridor it lets robot 1 through first, even though it is nearer.
+    const Turns on_its_way = arbitrate(map, {{0, 0.1}, {0, -0.6}}, {{0, 0.5}, {0, 2.2}});
+    CHECK(on_its_way.wait[1] == kGoOn);
+    REQUIRE(on_its_way.wait[0] == kWait);
+    CHECK(on_its_way.point[0].y > 1.5);
+}
+
+TEST_CASE("passages: of two robots whose goals lie in one corridor, the one that would pass the other goes around it, or both queue on its side") {
+    // Robot 0 (goal 0.6) would pass robot 1, parked at its goal (-0.2), and its goal.
+    const std::vector<Vec2> pos{{0, -0.7}, {0, -0.2}}, goal{{0, 0.6}, {0, -0.2}};
+    const std::vector<char> at_goal{0, 1};
+    // The corridor is the only way (as in a maze): both queue at the bottom, robot 0 nearer, so it
+    // leaves first and enters first.
+    const WorldMap walled = corridor_map(0.3, 1.5, false, 0, 2.4);
+    const Turns queue = arbitrate(walled, pos, goal, at_goal);
+    REQUIRE(queue.wait == std::vector<char>{kWait, kWait});
+    CHECK(queue.point[0].y < -1.5);
+    CHECK(queue.point[1].y < -1.5);
+    CHECK(queue.point[0].y > queue.point[1].y);
+    // Robot 0 ahead of robot 1, going deeper: nobody passes anybody, both go on.
+    CHECK(arbitrate(walled, {{0, -0.2}, {0, -0.7}}, {{0, 0.6}, {0, -0.2}}).wait == std::vector<char>{kGoOn, kGoOn});
+    // Robot 0's goal short of robot 1's: it does not pass robot 1.
+    CHECK(arbitrate(walled, {{0, -0.9}, {0, 0.4}}, {{0, -0.3}, {0, 0.4}}, at_goal).wait == std::vector<char>{kGoOn, kGoOn});
+    // With a way around, robot 0 takes it, kept out of the cells at robot 1 but not its own goal's.
+    const WorldMap open = corridor_map(0.3, 1.5, true, 0, 2.4);
+    PassageControl pc;
+    const Turns around = arbitrate(open, pos, goal, at_goal, &pc);
+    REQUIRE(around.wait == std::vector<char>{kAround, kGoOn});
+    const ClosedCells plug = pc.closed_to(0);
+    REQUIRE(plug.any());
+    RouteGuide guide;
+    const ClearanceGrid& grid = guide.grid(open);
+    CHECK(plug.closes(grid.index(pos[1])));
+    CHECK_FALSE(plug.closes(grid.index(goal[0])));
+    CHECK_FALSE(plug.closes(grid.index(pos[0])));
+    const std::vector<Vec2> route = walk_route(open, pos[0], goal[0], plug);
+    REQUIRE(!route.empty());
+    for (Vec2 q : route) CHECK(norm(q - pos[1]) >= 0.2);  // around, in by the top
+    CHECK(norm(route.back() - goal[0]) < 0.1);
+}
+
+TEST_CASE("passages: a robot past the middle of a long corridor came in by the mouth behind it, not the nearer one ahead") {
+    // Robot 0 at y = 0.6 on its way up a corridor from -2 to 2, its route in view not yet out of it;
+    // robot 1 comes down into it from the top: robot 0 holds, robot 1 waits at the top.
+    const WorldMap map = corridor_map(0.3, 2.0, false, 0, 3.0);
+    const Turns t = arbitrate(map, {{0, 0.6}, {0, 2.3}}, {{-1.5, 2.5}, {0, -2.3}});
+    REQUIRE(t.wait == std::vector<char>{kGoOn, kWait});
+    CHECK(t.point[1].y > 2.0);
 }
 
 TEST_CASE("passages: at a corridor with a way around, the robot that would wait goes around it, and its route keeps out") {
