@@ -103,6 +103,10 @@
 //        robots give way in its guidance by priority_order, as the expert's robots do.
 //        follower.filter_static_margin 0.005 (paper preset 0.01): the follower's filter lets a
 //        robot through most gaps its route passes (kPassableClearance 0.102).
+//        traffic.make_way: robots whose goals lie in a one-lane passage make way for robots
+//        passing through, and of two such robots the one that would pass the other goes around
+//        or both queue on its side; a robot inside a long passage claims the mouth behind it;
+//        waiting robots are routed to their waiting points (issue 46's maze).
 //   0.3  PlannerConfig: every planner setting in one struct, its defaults written once.
 //        PlannerConfig::tuned() (the default) and paper() (the paper's planner) presets.
 //        planner_settings(): one table behind validate(), set(), --set and --list-settings.
@@ -3750,6 +3754,10 @@ inline void PlannerConfig::set(const std::string& name, const std::string& text)
 //     would wait outside it goes around instead (go_around): its route keeps out of the passage
 //     (closed_to, ClosedCells) while the holders are in it, and robots going around the same
 //     passage take its two sides in turn (spread; closed_to then also closes the other side).
+//   - Goals in a passage (make_way): claims passing through come before those of robots whose
+//     goal lies in it; such a robot in the holder's way queues at the mouth the holder leaves
+//     by, ahead of it; of two such robots, the one that would pass the other goes around it
+//     (closed_to: a plug of cells at the other) or, with no way around, both queue on its side.
 // Memory: a few grids, plus two cell lists per avoidable passage (its sides).
 // Claims are made afresh at every call from positions, goals and ids alone, so robots that plan
 // for themselves with the same information reach the same decision.
@@ -3989,7 +3997,7 @@ private:
     // - A claim that would pass one whose goal it would pass too (the two goals in the other's
     //   order) goes in by the other mouth where there is a way (kGoAround, around a plug of cells
     //   at the other); where there is none (the corridor is the only way, as in a maze) both
-    //   queue at the mouth on its side, which it reaches first, so it enters first.
+    //   queue at the mouth it comes in by, which it reaches first, so it enters first.
     // Adds to waiters_; returns how many go around.
     int make_way(RouteGuide& guide, const WorldMap& map, const std::vector<int>& cell_passage, const Claim& lead, size_t first, const Vec2* pos,
                  const Vec2* goal, std::vector<char>& wait) {
@@ -4002,19 +4010,13 @@ private:
         auto queue = [&](int i, int m) {
             if (!queued(i)) waiters_.push_back(i), waiters_.push_back(m), made_way_ = true;
         };
-        // The mouth of the passage nearest `from` of those nearer `from` than `other`, or -1.
-        auto mouth_beside = [&](Vec2 from, Vec2 other, int except) {
-            int out = -1;
-            for (int m = 0; m < (int)mouths_.size(); ++m)
-                if (mouths_[m].passage == lead.passage && m != except && norm(mouths_[m].at - from) < norm(mouths_[m].at - other) &&
-                    (out < 0 || norm(mouths_[m].at - from) < norm(mouths_[out].at - from)))
-                    out = m;
-            return out;
-        };
         int around = 0;
         for (int i : parked_) {
             if (lead.parks || i == lead.robot || cell_passage[grid.index(pos[i])] != lead.passage || queued(i) || !in_the_way(grid, lead, pos[i])) continue;
-            const int out = mouth_beside(pos[i], pos[lead.robot], lead.mouth);
+            int out = -1;  // the mouth ahead of the holder: not the one it came in by
+            for (int m = 0; m < (int)mouths_.size(); ++m)
+                if (mouths_[m].passage == lead.passage && m != lead.mouth && (out < 0 || norm(mouths_[m].at - pos[i]) < norm(mouths_[out].at - pos[i])))
+                    out = m;
             if (out >= 0) queue(i, out);
         }
         for (size_t b = first; b < claims_.size(); ++b) {
@@ -4030,9 +4032,9 @@ private:
                     around_[c.robot] = c.passage;
                     plug_of_[c.robot] = (int)plugs_.size() - 1;
                     ++around;
-                } else if (const int m = mouth_beside(pos[c.robot], pos[j], -1); m >= 0) {
-                    queue(c.robot, m);
-                    queue(j, m);
+                } else {
+                    queue(c.robot, c.mouth);
+                    queue(j, c.mouth);
                 }
                 break;
             }
