@@ -3758,7 +3758,8 @@ inline void PlannerConfig::set(const std::string& name, const std::string& text)
 //     goal lies in it; such a robot in the holder's way queues at the mouth the holder leaves
 //     by, ahead of it; of two such robots, the one that would pass the other goes around it
 //     (closed_to: a plug of cells at the other) or, with no way around, both queue on its side.
-// Memory: a few grids, plus two cell lists per avoidable passage (its sides).
+// Memory: a few grids, plus two cell lists per avoidable passage (its sides); per call, the
+// claims' route cells in their passages and a few cells per plug.
 // Claims are made afresh at every call from positions, goals and ids alone, so robots that plan
 // for themselves with the same information reach the same decision.
 class PassageControl {
@@ -3879,9 +3880,6 @@ public:
                 }
             }
             if (p.spread > 0 && avoidable_[lead->passage]) spread_around(guide, map, lead->passage, pos, goal, ids);
-            // Who queues at which mouth: the losers at theirs; robots parked in the way of a holder
-            // passing through (make_way) at the mouth it leaves by, ahead of it: backing out the
-            // other way would meet it head-on, and staying puts it nose to nose with them.
             // Who queues at which mouth (waiters_: robot, mouth): the losers at theirs, then those
             // make_way sends out.
             waiters_.clear();
@@ -4099,10 +4097,11 @@ private:
         return {nullptr, -1, closed_key_[p] ^ (0x9E3779B97F4A7C15ull * (uint64_t)(s + 1)), &side_closed_[2 * p + s]};
     }
     // Whether claim a comes before b on their passage: one passing through before one whose
-    // goal lies in it (else a robot parked in a corridor blocks it for good), then the nearer (fewer route cells before
-    // it), then the one with less of it ahead, then the lower id (robots without one, no ids or
-    // id < 0, after those with one), then the lower index. By id, not index, a robot planning for
-    // itself (the others listed in another order) decides as the team's plan does.
+    // goal lies in it (make_way; else a robot parked in a corridor holds it for good), then the
+    // nearer (fewer route cells before it), then the one with less of it ahead, then the lower
+    // id (robots without one, no ids or id < 0, after those with one), then the lower index. By
+    // id, not index, a robot planning for itself (the others listed in another order) decides as
+    // the team's plan does.
     static bool before(const int* ids, const Claim& a, const Claim& b) {
         if (a.parks != b.parks) return b.parks;
         if (a.entry != b.entry) return a.entry < b.entry;
