@@ -105,7 +105,7 @@
 //        robot through most gaps its route passes (kPassableClearance 0.102).
 //        traffic.make_way: robots whose goals lie in a one-lane passage make way for robots
 //        passing through, and of two such robots the one that would pass the other goes around
-//        or both queue on its side; a robot inside a long passage claims the mouth behind it;
+//        or both queue at the mouth it comes in by; a robot inside a long passage claims the mouth behind it;
 //        waiting robots are routed to their waiting points (issue 46's maze).
 //   0.3  PlannerConfig: every planner setting in one struct, its defaults written once.
 //        PlannerConfig::tuned() (the default) and paper() (the paper's planner) presets.
@@ -3757,7 +3757,8 @@ inline void PlannerConfig::set(const std::string& name, const std::string& text)
 //   - Goals in a passage (make_way): claims passing through come before those of robots whose
 //     goal lies in it; such a robot in the holder's way queues at the mouth the holder leaves
 //     by, ahead of it; of two such robots, the one that would pass the other goes around it
-//     (closed_to: a plug of cells at the other) or, with no way around, both queue on its side.
+//     (closed_to: a plug of cells at the other) or, with no way around, both queue at the mouth
+//     it comes in by.
 // Memory: a few grids, plus two cell lists per avoidable passage (its sides); per call, the
 // claims' route cells in their passages and a few cells per plug.
 // Claims are made afresh at every call from positions, goals and ids alone, so robots that plan
@@ -3818,7 +3819,7 @@ public:
         if (p.make_way)
             for (int i = 0; i < n; ++i) {
                 const int q = cell_passage[grid.index(pos[i])];
-                if (q >= 0 && cell_passage[grid.index(goal[i])] == q) parked_.push_back(i);
+                if (q >= 0 && cell_passage[grid.index(goal[i])] == q) parked_.push_back({i, q});
             }
         const int max_cells = 2 + (int)std::ceil(p.lookahead / grid.cell);
         // Only passages an asked robot claims are decided, so only robots whose route may reach
@@ -3835,10 +3836,8 @@ public:
                     asked_claims_.push_back(c);
                     if (!relevant_[c.passage]) relevant_[c.passage] = 1, relevant_list_.push_back(c.passage);
                 }
-            for (int i : parked_) {  // an asked robot parked in a passage learns whether to make way
-                const int q = cell_passage[grid.index(pos[i])];
+            for (auto [i, q] : parked_)  // an asked robot parked in a passage learns whether to make way
                 if (asked[i] && !relevant_[q]) relevant_[q] = 1, relevant_list_.push_back(q);
-            }
         }
         size_t next_asked = 0;
         for (int i = 0; i < n; ++i) {
@@ -3883,8 +3882,8 @@ public:
             // Who queues at which mouth (waiters_: robot, mouth): the losers at theirs, then those
             // make_way sends out.
             waiters_.clear();
-            for (int b : losers_) waiters_.push_back(claims_[b].robot), waiters_.push_back(claims_[b].mouth);
-            if (p.make_way) waiting += make_way(guide, map, cell_passage, *lead, a, pos, goal, wait);
+            for (int b : losers_) waiters_.push_back({claims_[b].robot, claims_[b].mouth});
+            if (p.make_way) waiting += make_way(guide, map, *lead, a, pos, goal, wait);
             // The queue at each waiting mouth: its places from the mouth out, each to the robot
             // nearest it of those left (robots keep their places as they walk to them).
             for (int m = 0; m < (int)mouths_.size(); ++m) {
@@ -3892,10 +3891,8 @@ public:
                 for (int place = 0;; ++place) {
                     const Vec2 spot = waiting_point(grid, mouths_[m], p.wait_back + place * p.queue_spacing);
                     int best = -1;
-                    for (size_t k = 0; k < waiters_.size(); k += 2) {
-                        const int r = waiters_[k];
-                        if (waiters_[k + 1] == m && !wait[r] && (best < 0 || norm(pos[r] - spot) < norm(pos[best] - spot))) best = r;
-                    }
+                    for (auto [r, mouth] : waiters_)
+                        if (mouth == m && !wait[r] && (best < 0 || norm(pos[r] - spot) < norm(pos[best] - spot))) best = r;
                     if (best < 0) break;
                     wait[best] = kWait;
                     point[best] = spot;
@@ -3942,8 +3939,8 @@ private:
     std::vector<std::vector<int>> side_closed_;  // per avoidable passage p and side s, [2p + s]: the cells a robot going around on s keeps out of, sorted
     std::vector<Claim> claims_;
     std::vector<int> claim_cells_;  // arbitrate: the claims' route cells in their passages
-    std::vector<int> parked_;       // arbitrate: robots in a passage that holds their goal (make_way)
-    std::vector<int> waiters_;      // arbitrate: (robot, mouth) pairs that queue at one passage
+    std::vector<std::pair<int, int>> parked_;   // arbitrate: (robot, passage): robots in a passage that holds their goal (make_way)
+    std::vector<std::pair<int, int>> waiters_;  // arbitrate: (robot, mouth): who queues where at one passage
     bool made_way_ = false;         // arbitrate: some parked robot was sent out ahead of a holder
     struct Plug {
         uint64_t key;
@@ -3997,20 +3994,18 @@ private:
     //   at the other); where there is none (the corridor is the only way, as in a maze) both
     //   queue at the mouth it comes in by, which it reaches first, so it enters first.
     // Adds to waiters_; returns how many go around.
-    int make_way(RouteGuide& guide, const WorldMap& map, const std::vector<int>& cell_passage, const Claim& lead, size_t first, const Vec2* pos,
-                 const Vec2* goal, std::vector<char>& wait) {
+    int make_way(RouteGuide& guide, const WorldMap& map, const Claim& lead, size_t first, const Vec2* pos, const Vec2* goal,
+                 std::vector<char>& wait) {
         const ClearanceGrid& grid = guide.grid();
         auto queued = [&](int i) {
-            for (size_t k = 0; k < waiters_.size(); k += 2)
-                if (waiters_[k] == i) return true;
-            return false;
+            return std::any_of(waiters_.begin(), waiters_.end(), [i](const std::pair<int, int>& w) { return w.first == i; });
         };
         auto queue = [&](int i, int m) {
-            if (!queued(i)) waiters_.push_back(i), waiters_.push_back(m), made_way_ = true;
+            if (!queued(i)) waiters_.push_back({i, m}), made_way_ = true;
         };
         int around = 0;
-        for (int i : parked_) {
-            if (lead.parks || i == lead.robot || cell_passage[grid.index(pos[i])] != lead.passage || queued(i) || !in_the_way(grid, lead, pos[i])) continue;
+        for (auto [i, q] : parked_) {
+            if (lead.parks || i == lead.robot || q != lead.passage || queued(i) || !in_the_way(grid, lead, pos[i])) continue;
             int out = -1;  // the mouth ahead of the holder: not the one it came in by
             for (int m = 0; m < (int)mouths_.size(); ++m)
                 if (mouths_[m].passage == lead.passage && m != lead.mouth && (out < 0 || norm(mouths_[m].at - pos[i]) < norm(mouths_[out].at - pos[i])))
@@ -4020,8 +4015,8 @@ private:
         for (size_t b = first; b < claims_.size(); ++b) {
             const Claim& c = claims_[b];
             if (c.passage != lead.passage || !c.parks || queued(c.robot)) continue;
-            for (int j : parked_) {
-                if (j == c.robot || cell_passage[grid.index(pos[j])] != c.passage || !passes(grid, c, goal[c.robot], pos[j]) ||
+            for (auto [j, q] : parked_) {
+                if (j == c.robot || q != c.passage || !passes(grid, c, goal[c.robot], pos[j]) ||
                     !passes(grid, c, goal[c.robot], goal[j]))
                     continue;
                 const ClosedCells plug = plug_at(grid, c.passage, pos[j], pos[c.robot], goal[c.robot]);
