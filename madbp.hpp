@@ -3429,6 +3429,7 @@ void sample_windows(Denoiser& model, const NoiseSchedule& schedule, const SceneB
 struct TrafficConfig {
     bool take_turns = true;        // robots that would meet head-on in a one-lane passage take turns (false: each heads for its goal)
     bool make_way = true;          // a robot parked in a passage leaves it ahead of a robot passing through (PassageControl)
+    bool queue_in_order = true;    // a robot behind one queueing at a mouth queues too, though it would enter after the holder left
     int passage_replan = 4;        // while robots may meet in a passage, a plan asks to be replaced after this many steps (0: never)
     double one_lane_width = 0.47;  // passages narrower than this, wall to wall, are one-lane (on the grid: 0.45 always, 0.50 never)
     // A robot's centre fits where the clearance is >= this: RouteClearance::min, so a 0.25-wide
@@ -3639,6 +3640,8 @@ inline const std::vector<PlannerSetting>& planner_settings() {
          +[](C& c) -> bool& { return c.traffic.take_turns; }},
         {"traffic.make_way", 0, 1, "a robot whose goal is in a one-lane passage leaves it ahead of robots passing through", nullptr, 0,
          +[](C& c) -> bool& { return c.traffic.make_way; }},
+        {"traffic.queue_in_order", 0, 1, "a robot behind one queueing at a passage's mouth queues too", nullptr, 0,
+         +[](C& c) -> bool& { return c.traffic.queue_in_order; }},
         {"traffic.passage_replan", 0, 1000, "while robots may meet in a passage, replan after this many steps (0 = off)", nullptr, 0,
          +[](C& c) -> int& { return c.traffic.passage_replan; }},
         {"traffic.one_lane_width", 0, 100, "passages narrower than this, wall to wall, are one-lane", nullptr, 0,
@@ -3863,13 +3866,17 @@ public:
             for (size_t b = a + 1; b < claims_.size(); ++b)
                 if (claims_[b].passage == lead->passage && before(ids, claims_[b], *lead)) lead = &claims_[b];
             losers_.clear();
+            behind_.clear();
             for (size_t b = a; b < claims_.size(); ++b) {
                 if (claims_[b].passage != lead->passage || claims_[b].mouth == lead->mouth) continue;
                 bool meets = false;
                 for (size_t h = a; h < claims_.size(); ++h)
                     meets = meets || (claims_[h].passage == lead->passage && claims_[h].mouth == lead->mouth &&
                                       claims_[b].entry <= claims_[h].exit + clear_cells);
-                if (!meets) continue;
+                if (!meets) {
+                    if (p.queue_in_order && !avoidable_[lead->passage]) behind_.push_back((int)b);
+                    continue;
+                }
                 if (avoidable_[lead->passage] && claims_[b].entry > 0) {
                     wait[claims_[b].robot] = kGoAround;
                     around_[claims_[b].robot] = lead->passage;
@@ -3877,6 +3884,15 @@ public:
                 } else {
                     losers_.push_back((int)b);
                 }
+            }
+            // Queues keep their order (queue_in_order): a claim that would enter after the holder
+            // leaves still queues when a claim from its mouth queues, since it cannot pass that
+            // robot on its way in; going on, it pushes the queue into the mouth the holder leaves
+            // by (maze-32-32-4's dead-end mouths, docs/experiments.md "Queues in order").
+            for (int b : behind_) {
+                bool queue = false;
+                for (int l : losers_) queue = queue || claims_[l].mouth == claims_[b].mouth;
+                if (queue) losers_.push_back(b);
             }
             if (p.spread > 0 && avoidable_[lead->passage]) spread_around(guide, map, lead->passage, pos, goal, ids);
             // Who queues at which mouth (waiters_: robot, mouth): the losers at theirs, then those
@@ -3928,7 +3944,7 @@ private:
     };
     WorldMap map_;
     double made_with_[6] = {};  // the parameters and cell the passages were found with
-    std::vector<int> passage_, mouth_, route_, losers_, queue_, around_, around_side_, going_;
+    std::vector<int> passage_, mouth_, route_, losers_, behind_, queue_, around_, around_side_, going_;
     std::vector<Mouth> mouths_;
     std::vector<char> avoidable_;    // per passage: it has a way around within `bypass`
     std::vector<uint64_t> closed_key_;  // per passage: ClosedCells::key of its cells

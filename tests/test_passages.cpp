@@ -394,6 +394,28 @@ TEST_CASE("passages: spare, the room a claim from the other mouth leaves the hol
     CHECK_FALSE(pc.contested());
 }
 
+TEST_CASE("passages: queues keep their order: a robot behind one that queues queues too, though it would enter after the holder left") {
+    const WorldMap map = corridor_map(0.44, 0.4);  // walled: no way around
+    // Robot 0 holds the corridor on its way up; robot 1 would meet it inside; robot 2, behind
+    // robot 1, would enter only after robot 0 is out.
+    const std::vector<Vec2> pos{{0, 0.0}, {0, 0.6}, {0.05, 1.05}}, goal{{0, 0.9}, {0, -0.9}, {0, -0.9}};
+    PassageControl pc;
+    const Turns t = arbitrate(map, pos, goal, {}, &pc);
+    REQUIRE(t.wait == std::vector<char>{kGoOn, kWait, kWait});
+    CHECK(norm(t.point[1] - t.point[2]) >= 0.25);  // places of their own
+    // Alone, robot 2 would go on (it arrives after the holder is out), and so it did before
+    // queues kept their order: then it pushed robot 1 into the mouth robot 0 leaves by.
+    CHECK(arbitrate(map, {pos[0], pos[2]}, {goal[0], goal[2]}).wait == std::vector<char>{kGoOn, kGoOn});
+    pc.params.queue_in_order = false;
+    CHECK(arbitrate(map, pos, goal, {}, &pc).wait == std::vector<char>{kGoOn, kWait, kGoOn});
+    // At a corridor with a way around the robot that would meet the holder goes around, and no
+    // queue forms: the one behind goes on.
+    const WorldMap open = corridor_map(0.44, 0.4, /*free_standing=*/true);
+    const Turns around = arbitrate(open, pos, goal);
+    CHECK(around.wait[1] == kAround);
+    CHECK(around.wait[2] == kGoOn);
+}
+
 TEST_CASE("passages: asked robots' turns are those of a call for all; robots far from their passages are not routed") {
     // A wall across a world of half-size 3 with three corridors through it (x = -2, 0, 2) and a
     // free-standing corridor (a way around) below; 40 robots crossing and walking beside them.
