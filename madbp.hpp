@@ -107,6 +107,7 @@
 //        passing through, and of two such robots the one that would pass the other goes around
 //        or both queue at the mouth it comes in by; a robot inside a long passage claims the mouth behind it;
 //        waiting robots are routed to their waiting points (issue 46's maze).
+//        traffic.queue_in_order: a robot behind one queueing at a passage's mouth queues too.
 //   0.3  PlannerConfig: every planner setting in one struct, its defaults written once.
 //        PlannerConfig::tuned() (the default) and paper() (the paper's planner) presets.
 //        planner_settings(): one table behind validate(), set(), --set and --list-settings.
@@ -3762,6 +3763,8 @@ inline void PlannerConfig::set(const std::string& name, const std::string& text)
 //     by, ahead of it; of two such robots, the one that would pass the other goes around it
 //     (closed_to: a plug of cells at the other) or, with no way around, both queue at the mouth
 //     it comes in by.
+//   - Queues keep their order (queue_in_order): at a passage with no way around, when a claim
+//     from a mouth waits, every claim from that mouth waits, since none can pass the first.
 // Memory: a few grids, plus two cell lists per avoidable passage (its sides); per call, the
 // claims' route cells in their passages and a few cells per plug.
 // Claims are made afresh at every call from positions, goals and ids alone, so robots that plan
