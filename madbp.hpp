@@ -108,6 +108,8 @@
 //        or both queue at the mouth it comes in by; a robot inside a long passage claims the mouth behind it;
 //        waiting robots are routed to their waiting points (issue 46's maze).
 //        traffic.queue_in_order: a robot behind one queueing at a passage's mouth queues too.
+//        Queue places follow the free space where the line out of a mouth meets a wall; of two
+//        robots coming in by one mouth to goals in a passage, the one going deeper goes first.
 //   0.3  PlannerConfig: every planner setting in one struct, its defaults written once.
 //        PlannerConfig::tuned() (the default) and paper() (the paper's planner) presets.
 //        planner_settings(): one table behind validate(), set(), --set and --list-settings.
@@ -178,6 +180,7 @@
 #include <map>
 #include <memory>
 #include <numeric>
+#include <queue>
 #include <sstream>
 #include <stdexcept>
 #include <string>
@@ -3753,7 +3756,9 @@ inline void PlannerConfig::set(const std::string& name, const std::string& text)
 //     lower id, then the lower index) holds it; the claims that enter by another mouth wait in
 //     a queue at theirs: places wait_back out from the mouth's centre, then every
 //     queue_spacing, each wait_side to the right of the way in (to the left, or on that line,
-//     where there is no room), each taken by the robot nearest it of those left.
+//     where there is no room), each taken by the robot nearest it of those left; where none of
+//     the three fits near the mouth's free space (a maze's corners), the fitting cell near by
+//     nearest the line, else the one whose walk from the mouth is about as long.
 //     A robot in the passage that must wait backs out. At an avoidable passage a robot that
 //     would wait outside it goes around instead (go_around): its route keeps out of the passage
 //     (closed_to, ClosedCells) while the holders are in it, and robots going around the same
@@ -3762,11 +3767,13 @@ inline void PlannerConfig::set(const std::string& name, const std::string& text)
 //     goal lies in it; such a robot in the holder's way queues at the mouth the holder leaves
 //     by, ahead of it; of two such robots, the one that would pass the other goes around it
 //     (closed_to: a plug of cells at the other) or, with no way around, both queue at the mouth
-//     it comes in by.
+//     it comes in by; of two coming in by one mouth, the one ahead whose goal the other would
+//     pass queues until it has.
 //   - Queues keep their order (queue_in_order): at a passage with no way around, when a claim
 //     from a mouth waits, every claim from that mouth waits, since none can pass the first.
-// Memory: a few grids, plus two cell lists per avoidable passage (its sides); per call, the
-// claims' route cells in their passages and a few cells per plug.
+// Memory: a few grids (one of them the walk lengths from a mouth, for queues), plus two cell
+// lists per avoidable passage (its sides); per call, the claims' route cells in their passages
+// and a few cells per plug.
 // Claims are made afresh at every call from positions, goals and ids alone, so robots that plan
 // for themselves with the same information reach the same decision.
 class PassageControl {
@@ -3907,8 +3914,11 @@ public:
             // nearest it of those left (robots keep their places as they walk to them).
             for (int m = 0; m < (int)mouths_.size(); ++m) {
                 if (mouths_[m].passage != lead->passage) continue;
-                for (int place = 0;; ++place) {
-                    const Vec2 spot = waiting_point(grid, mouths_[m], p.wait_back + place * p.queue_spacing);
+                int queued = 0;
+                for (auto [r, mouth] : waiters_) queued += mouth == m && !wait[r];
+                if (queued == 0) continue;
+                queue_places(grid, m, queued, places_);
+                for (const Vec2 spot : places_) {
                     int best = -1;
                     for (auto [r, mouth] : waiters_)
                         if (mouth == m && !wait[r] && (best < 0 || norm(pos[r] - spot) < norm(pos[best] - spot))) best = r;
@@ -3949,6 +3959,10 @@ private:
     double made_with_[6] = {};  // the parameters and cell the passages were found with
     std::vector<int> passage_, mouth_, route_, losers_, behind_, queue_, around_, around_side_, going_;
     std::vector<Mouth> mouths_;
+    std::vector<std::vector<int>> mouth_cells_;  // per mouth: its cells
+    std::vector<Vec2> places_;                   // arbitrate: one queue's places
+    std::vector<float> walk_;                    // queue_places: walk lengths from a mouth (walk_from)
+    std::vector<int> walked_;                    // the cells walk_ holds
     std::vector<char> avoidable_;    // per passage: it has a way around within `bypass`
     std::vector<uint64_t> closed_key_;  // per passage: ClosedCells::key of its cells
     std::vector<Box> box_;              // per passage: the box of its cells' centres (arbitrate's `asked`: who may claim it)
@@ -4050,6 +4064,15 @@ private:
                 }
                 break;
             }
+            // Of two robots coming in by one mouth to goals in the passage, the one that would
+            // pass the other's goal goes first: the other, ahead of it, queues until it has.
+            // Else the one ahead parks in its way, and both back out (maze-32-32-4).
+            for (size_t e = first; e < claims_.size() && !queued(c.robot); ++e) {
+                const Claim& d = claims_[e];
+                if (e != b && d.passage == c.passage && d.mouth == c.mouth && d.parks && !queued(d.robot) &&
+                    passes(grid, c, goal[c.robot], goal[d.robot]) && (d.entry < c.entry || passes(grid, c, goal[c.robot], pos[d.robot])))
+                    queue(d.robot, c.mouth);
+            }
         }
         return around;
     }
@@ -4092,18 +4115,93 @@ private:
         plugs_.push_back(std::move(plug));
         return {nullptr, -1, plugs_.back().key, &plugs_.back().cells};
     }
-    // Where the robot waits that is `distance` out from mouth m: right of the way in, left, or on it,
-    // the first point that fits (clearance >= free_clear + 0.04) outside any passage.
-    Vec2 waiting_point(const ClearanceGrid& grid, const Mouth& m, double distance) const {
-        const double lim = grid.half - params.free_clear;
+    // The first `count` places of the queue at mouth m, nearest first (queue_places). Place k is
+    // wait_back + k queue_spacing out from the mouth: right of the way in, left, or on it, the first
+    // point that fits (clearance >= free_clear + 0.04, outside any passage) and is near by the
+    // free cells (in straight view of the mouth's centre, or its walk from the mouth at most 1.5
+    // times as long). Where none is (a mouth at a maze's corner, a wall or the border behind
+    // it: the line runs into walls or another aisle), of the fitting cells at least 0.8
+    // queue_spacing from the places before it, the one near by nearest the point on the line;
+    // with none near by, the one whose walk from the mouth is nearest that distance (docs/design.md,
+    // "Queue places").
+    void queue_places(const ClearanceGrid& grid, int m, int count, std::vector<Vec2>& places) {
+        const TrafficConfig& p = params;
+        const Mouth& mouth = mouths_[m];
+        const double lim = grid.half - p.free_clear;
         auto fits = [&](Vec2 q) {
-            return std::abs(q.x) <= lim && std::abs(q.y) <= lim && grid.clear[grid.index(q)] >= params.free_clear + 0.04 &&
+            return std::abs(q.x) <= lim && std::abs(q.y) <= lim && grid.clear[grid.index(q)] >= p.free_clear + 0.04 &&
                    passage_[grid.index(q)] < 0;
         };
-        const Vec2 base = m.at - m.in * distance, right{m.in.y, -m.in.x};
-        for (const Vec2 q : {base + right * params.wait_side, base - right * params.wait_side, base})
-            if (fits(q)) return q;
-        return clamp_box(base, lim);
+        auto in_view = [&](Vec2 q) {  // over free cells outside passages, every half cell
+            const int samples = 1 + (int)std::ceil(2 * norm(q - mouth.at) / grid.cell);
+            for (int s = 0; s <= samples; ++s) {
+                const int k = grid.index(mouth.at + (q - mouth.at) * ((double)s / samples));
+                if (grid.clear[k] < p.free_clear || passage_[k] >= 0) return false;
+            }
+            return true;
+        };
+        const Vec2 right{mouth.in.y, -mouth.in.x};
+        places.clear();
+        double walked_to = -1;  // how far walk_ reaches from this mouth (-1: not walked yet)
+        for (int k = 0; k < count; ++k) {
+            const double distance = p.wait_back + k * p.queue_spacing;
+            const Vec2 base = mouth.at - mouth.in * distance, preferred = base + right * p.wait_side;
+            const double reach = 1.5 * (distance + p.wait_side) + 2;  // world units: the free room may begin farther out
+            auto walk = [&](Vec2 q) {
+                if (walked_to < reach) walk_from(grid, mouth_cells_[m], reach), walked_to = reach;
+                return walk_[grid.index(q)];
+            };
+            auto apart = [&](Vec2 q) {  // from the places before it (straight ones always are)
+                for (const Vec2 other : places)
+                    if (norm(q - other) < 0.8 * p.queue_spacing) return false;
+                return true;
+            };
+            bool placed = false;
+            for (const Vec2 q : {preferred, base - right * p.wait_side, base}) {
+                if (!fits(q) || !apart(q)) continue;
+                const double w = in_view(q) ? 0 : walk(q);
+                if (w >= 0 && w <= 1.5 * norm(q - mouth.at) + 2 * grid.cell) {
+                    places.push_back(q);
+                    placed = true;
+                    break;
+                }
+            }
+            if (placed) continue;
+            walk(base);
+            int nearest = -1, farther = -1;  // the cells near by nearest the line's point; the one walked about as far
+            double nearest_off = 0, farther_gap = 0;
+            for (int c : walked_) {
+                const Vec2 q = grid.centre(c);
+                if (!fits(q) || !apart(q)) continue;
+                const double off = norm(q - base), gap = std::abs(walk_[c] - distance);
+                if (walk_[c] <= 1.5 * norm(q - mouth.at) + 2 * grid.cell && (nearest < 0 || off < nearest_off)) nearest = c, nearest_off = off;
+                if (farther < 0 || gap < farther_gap) farther = c, farther_gap = gap;
+            }
+            places.push_back(nearest >= 0 ? grid.centre(nearest) : farther >= 0 ? grid.centre(farther) : clamp_box(base, lim));
+        }
+    }
+    // walk_[k] for the cells walked_ lists: the length of the shortest walk (8 directions) from
+    // `from` to cell k over free cells outside passages, up to `reach`; the other cells hold -1.
+    void walk_from(const ClearanceGrid& grid, const std::vector<int>& from, double reach) {
+        const int n = grid.n;
+        for (int k : walked_) walk_[k] = -1;
+        walked_.clear();
+        walk_.resize((size_t)n * n, -1.f);
+        using Item = std::pair<float, int>;
+        std::priority_queue<Item, std::vector<Item>, std::greater<Item>> open;
+        for (int k : from) walk_[k] = 0, walked_.push_back(k), open.push({0.f, k});
+        while (!open.empty()) {
+            const auto [w, k] = open.top();
+            open.pop();
+            if (w > walk_[k]) continue;  // reached more cheaply since it was queued
+            detail::for_each_neighbour(n, k, [&](int k2) {
+                const float w2 = w + (float)(grid.cell * ((k2 / n != k / n && k2 % n != k % n) ? std::sqrt(2.0) : 1.0));
+                if (w2 > reach || grid.clear[k2] < params.free_clear || passage_[k2] >= 0 || (walk_[k2] >= 0 && walk_[k2] <= w2)) return;
+                if (walk_[k2] < 0) walked_.push_back(k2);
+                walk_[k2] = w2;
+                open.push({w2, k2});
+            });
+        }
     }
 
     // The cells a robot going around avoidable passage p on side s keeps out of (close_side).
@@ -4264,6 +4362,7 @@ private:
         passage_.assign((size_t)n * n, -1);
         mouth_.assign((size_t)n * n, -1);
         mouths_.clear();
+        mouth_cells_.clear();
         avoidable_.clear();
         closed_key_.clear();
         box_.clear();
@@ -4306,6 +4405,7 @@ private:
                 m.at = m.at / (double)group.size();
                 m.in = normalized(inner / (double)std::max(1, inner_count) - m.at);
                 mouths_.push_back(m);
+                mouth_cells_.push_back(group);
             }
             // A corner or a dead end (one mouth) is no passage; nor is a junction (three or more),
             // a doorway (mouths less than min_length apart), or without go_around one with a way
@@ -4317,6 +4417,7 @@ private:
             if (!corridor || (avoidable && !params.go_around)) {
                 for (int b : beside) mouth_[b] = -1;
                 mouths_.resize(first_mouth);
+                mouth_cells_.resize(first_mouth);
                 continue;
             }
             avoidable_.push_back(avoidable);

@@ -293,6 +293,21 @@ TEST_CASE("passages: of two robots whose goals lie in one corridor, the one that
     CHECK(norm(route.back() - goal[0]) < 0.1);
 }
 
+TEST_CASE("passages: of two robots coming in by one mouth to goals in a corridor, the one going deeper goes first") {
+    const WorldMap map = corridor_map(0.44, 0.4);  // walled: no way around
+    // Robot 0, nearer the mouth, parks just inside; robot 1 goes past that goal to one deeper.
+    const std::vector<Vec2> pos{{0, -0.55}, {0.05, -0.85}}, goal{{0, -0.2}, {0, 0.3}};
+    const Turns t = arbitrate(map, pos, goal);
+    CHECK(t.wait == std::vector<char>{kWait, kGoOn});
+    check_waiting_point(map, t.point[0]);
+    // In the other order (the nearer goes deeper) both go on, one after the other.
+    CHECK(arbitrate(map, pos, {goal[1], goal[0]}).wait == std::vector<char>{kGoOn, kGoOn});
+    // Without make_way neither waits: the nearer parks in the other's way.
+    PassageControl plain;
+    plain.params.make_way = false;
+    CHECK(arbitrate(map, pos, goal, {}, &plain).wait == std::vector<char>{kGoOn, kGoOn});
+}
+
 TEST_CASE("passages: a robot past the middle of a long corridor came in by the mouth behind it, not the nearer one ahead") {
     // Robot 0 at y = 0.6 on its way up a corridor from -2 to 2, its route in view not yet out of it;
     // robot 1 comes down into it from the top: robot 0 holds, robot 1 waits at the top.
@@ -414,6 +429,31 @@ TEST_CASE("passages: queues keep their order: a robot behind one that queues que
     const Turns around = arbitrate(open, pos, goal);
     CHECK(around.wait[1] == kAround);
     CHECK(around.wait[2] == kGoOn);
+}
+
+TEST_CASE("passages: at a mouth in a corner the queue's places follow the free space: clear of the walls and apart") {
+    // A one-lane corridor (0.25 wide along y = 0, x from 0 to 1.4) whose left mouth opens into the
+    // bottom right corner of a shaft 0.8 wide going up: the line out of that mouth (-x) meets the
+    // shaft's left wall 0.8 out, so a queue's second place on it would lie in the wall (as at
+    // maze-32-32-4's corners). A robot coming from the right holds the corridor; four in the shaft
+    // queue at its left mouth.
+    WorldMap map;
+    map.half_size = 2;
+    const double w = 0.125;
+    map.boxes.push_back({{-2, -2}, {2, -w}});      // the floor
+    map.boxes.push_back({{-2, -w}, {-0.8, 2}});    // the shaft's left wall
+    map.boxes.push_back({{0, w}, {1.4, 2}});       // above the corridor (the shaft's right wall)
+    REQUIRE(count_passages(map) == 1);
+    const std::vector<Vec2> pos{{1.0, 0}, {-0.3, 0.4}, {-0.55, 0.6}, {-0.3, 0.8}, {-0.55, 1.0}},
+        goal{{-0.4, 1.6}, {1.7, 1.5}, {1.7, 1.0}, {1.7, 0.5}, {1.7, 1.8}};
+    const Turns t = arbitrate(map, pos, goal);
+    REQUIRE(t.wait == std::vector<char>{kGoOn, kWait, kWait, kWait, kWait});
+    for (int i = 1; i <= 4; ++i) {
+        CAPTURE(i);
+        check_waiting_point(map, t.point[i]);
+        CHECK(t.point[i].x < 0);  // in the shaft, on the mouth's side
+        for (int j = 1; j < i; ++j) CHECK(norm(t.point[i] - t.point[j]) >= 0.8 * TrafficConfig{}.queue_spacing);
+    }
 }
 
 TEST_CASE("passages: asked robots' turns are those of a call for all; robots far from their passages are not routed") {
