@@ -3525,6 +3525,7 @@ struct PlannerConfig {
         p.follower.priority_weight = 1;
         p.follower.lookahead = 0;
         p.follower.replan_error = 0;
+        p.follower.unjam = 0;
         p.follower.replan_every = 8;  // SPEC 8: half the shipped model's window
         p.follower.filter = SafetyFilterParams{};
         return p;
@@ -3680,6 +3681,8 @@ inline const std::vector<PlannerSetting>& planner_settings() {
          +[](C& c) -> double& { return c.follower.lookahead; }},
         {"follower.replan_error", 0, 100, "replan early (after m/2 steps) when a robot is this far off its plan (0 = off)", nullptr, 0,
          +[](C& c) -> double& { return c.follower.replan_error; }},
+        {"follower.unjam", 0, 1000, "a robot the filter holds this many steps, with no progress for twice as long, backs out (0 = off)", nullptr, 0,
+         +[](C& c) -> int& { return c.follower.unjam; }},
         {"follower.filter_rate", 0.01, 9.99, "the safety filter's barrier rate, 1/s (below 1/dt)", nullptr, 0,
          +[](C& c) -> double& { return c.follower.filter.rate; }},
         {"follower.filter_static_margin", 0, 1, "the safety filter's gap kept to obstacles and walls beyond touching, world units (routes pass cells 0.002 beyond)", nullptr, 0,

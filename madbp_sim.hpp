@@ -33,6 +33,8 @@
 //        RouteGuide's views read only those).
 //        kPassableClearance (0.102): routes and passages share it. follower_filter() keeps 0.005
 //        to the map (was SPEC's 0.01, which froze robots in gaps their routes pass).
+//        FollowerConfig::unjam 15 (paper preset and the straight line: 0): a robot the filter
+//        holds with no progress backs out to its most open side (crowds among obstacles).
 //   0.3  PassageControl and its parameters move to madbp.hpp (the planner's traffic conventions).
 //        ClearanceGrid moves to Section 2; ReachGrid is gone (detail::all_reachable on its layout).
 //        movingai_scene / load_movingai_scene: MovingAI MAPF benchmark maps and scenarios as scenes.
@@ -2334,6 +2336,14 @@ struct FollowerConfig {
     // planning again from where it is raised barrier 6 from .96 to .97 on the tuning seeds at no
     // measurable cost (docs/experiments.md, "Replanning off the plan").
     double replan_error = 0.15;
+    // Backing out of a jam, steps, >= 0 (0: off). A robot not at its goal that the filter holds
+    // (it asks for |u| > 0.3 and is let through less than 30 % of it) for `unjam` steps in a row,
+    // and has come no nearer its goal by 0.05 for 2 unjam steps, backs out for 2 unjam / 3 steps:
+    // its action points to its most open side (away from the robots within filter.range and the
+    // surfaces, each by 1 / gap), then the filter. Four robots wedged among discs, each pinned by
+    // another and a disc, stand still for good; backing out opens a way (docs/experiments.md,
+    // "Backing out of jams").
+    int unjam = 15;
 };
 class PlanFollower : public Policy {
 public:
@@ -2346,6 +2356,7 @@ public:
         // Here what needs no world; the rate's bound 1/dt is the world's, and safety_filter checks it.
         if (!(cfg_.filter.rate > 0) || !std::isfinite(cfg_.filter.rate))
             throw std::invalid_argument("filter.rate: must be finite and > 0 (got " + std::to_string(cfg_.filter.rate) + ")");
+        if (cfg_.unjam < 0) throw std::invalid_argument("unjam: must be >= 0 steps (got " + std::to_string(cfg_.unjam) + ")");
         for (auto [field, v] : {std::pair<const char*, double>{"filter.margin", cfg_.filter.margin},
                                 {"filter.static_margin", cfg_.filter.static_margin}, {"filter.range", cfg_.filter.range},
                                 {"replan_error", cfg_.replan_error}})
@@ -2371,7 +2382,16 @@ public:
             const int j = world.index_of(plan_.ids[i]);
             u[j] = track_plan(world.agents()[j], plan_.waypoints[i], ahead, model, cfg_.tracker, world.config().max_action);
         }
-        if (cfg_.safety_filter) u = safety_filter(world, u, cfg_.filter, filter_weights(world));
+        if (cfg_.unjam > 0) back_out(world, u);
+        if (cfg_.safety_filter) {
+            if (cfg_.unjam > 0) nominal_ = u;
+            u = safety_filter(world, u, cfg_.filter, filter_weights(world));
+            if (cfg_.unjam > 0)
+                for (int i = 0; i < world.size(); ++i) {
+                    Jam& jam = jams_[world.agents()[i].id];
+                    jam.asked = norm(nominal_[i]), jam.got = norm(u[i]);
+                }
+        }
         return u;
     }
     double decision_ms() const override { return plans_ ? total_ms_ / plans_ : 0; }
@@ -2399,6 +2419,43 @@ private:
     int plan_t0_ = 0, plans_ = 0;
     double total_ms_ = 0;
     std::map<int, double> first_distance_;  // agent id -> distance to its goal when first seen
+    struct Jam {  // per robot (unjam): how it has fared
+        double nearest = std::numeric_limits<double>::infinity();  // to its goal so far
+        int nearer_at = 0, held = 0, out_until = -1;  // step it last came 0.05 nearer; steps held; backing out until
+        double asked = 0, got = 0;                    // |action| before and after the filter, last step
+    };
+    std::map<int, Jam> jams_;     // agent id -> its jam state
+    std::vector<Vec2> nominal_;  // act: the actions before the filter
+    // unjam: counts the steps each robot is held, and points the action of a robot held too long
+    // to its most open side.
+    void back_out(const World& world, std::vector<Vec2>& u) {
+        const int t = world.t(), n = world.size();
+        const double r = world.config().radius, range = cfg_.filter.range;
+        for (int i = 0; i < n; ++i) {
+            const Agent& a = world.agents()[i];
+            Jam& jam = jams_[a.id];
+            const double d = norm(a.pos - a.goal);
+            if (d < jam.nearest - 0.05) jam.nearest = d, jam.nearer_at = t;
+            if (world.at_goal(a)) {
+                jam.held = 0;
+                continue;
+            }
+            jam.held = jam.asked > 0.3 && jam.got < 0.3 * jam.asked ? jam.held + 1 : 0;
+            if (jam.out_until < t && jam.held >= cfg_.unjam && t - jam.nearer_at >= 2 * cfg_.unjam)
+                jam.out_until = t + 2 * cfg_.unjam / 3, jam.held = 0;
+            if (jam.out_until < t) continue;
+            Vec2 open{0, 0};
+            for (int j = 0; j < n; ++j) {
+                const Vec2 away = a.pos - world.agents()[j].pos;
+                const double dist = norm(away);
+                if (j != i && dist < range && dist > 1e-9) open += away / dist / std::max(dist - 2 * r, 0.01);
+            }
+            for_each_surface(world.map(), a.pos, [&](double gap, Vec2 away) {
+                if (gap < range) open += away / std::max(gap - r, 0.01);
+            });
+            if (norm(open) > 1e-9) u[i] = open / norm(open) * world.config().max_action;
+        }
+    }
     bool needs_plan(const World& world) const {
         if (plans_ == 0 || world.t() < plan_t0_ || world.t() - plan_t0_ >= cfg_.replan_every) return true;
         if ((int)plan_.ids.size() != world.size()) return true;

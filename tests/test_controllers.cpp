@@ -318,6 +318,36 @@ TEST_CASE("PlanFollower: filter priorities break a symmetric standoff as the exp
     CHECK_THROWS_WITH_AS(PlanFollower(LinePlanner{}, bad), doctest::Contains("priority_weight"), std::invalid_argument);
 }
 
+TEST_CASE("PlanFollower: unjam backs a robot out of a standoff the filter holds for good") {
+    // Two robots nose to nose, each driving straight at the other with equal filter weights: the
+    // filter stops both, and without unjam they stand there for good. With unjam, once each has
+    // been held `unjam` steps and come no nearer its goal for twice as long, it backs out.
+    auto widest_after = [](int unjam, int from) {
+        World w;
+        w.add_agent({-0.12, 0}, {0.9, 0});
+        w.add_agent({0.12, 0}, {-0.9, 0});
+        FollowerConfig fc;
+        fc.priority_weight = 1;
+        fc.unjam = unjam;
+        PlanFollower f(LinePlanner{}, fc);
+        double widest = 0;
+        for (int t = 0; t < 80; ++t) {
+            w.step(f.act(w));
+            if (t >= from) widest = std::max(widest, norm(w.agents()[0].pos - w.agents()[1].pos));
+        }
+        CHECK(w.metrics().collisions() == 0);
+        return widest;
+    };
+    CHECK(FollowerConfig{}.unjam == 15);
+    const double held = widest_after(0, 20), backed = widest_after(15, 20);
+    MESSAGE("widest gap after step 20: " << held << " without unjam, " << backed << " with");
+    CHECK(held < 0.245);    // stopped at the filter's distance, 0.23
+    CHECK(backed > 0.35);   // backed out
+    FollowerConfig bad;
+    bad.unjam = -1;
+    CHECK_THROWS_WITH_AS(PlanFollower(LinePlanner{}, bad), doctest::Contains("unjam"), std::invalid_argument);
+}
+
 TEST_CASE("PlanFollower: lookahead aims between later waypoints; in steady tracking the robot runs that far ahead") {
     // One robot at rest, a plan along +x at half its top speed: waypoint k (0-based, the
     // position after step k + 1) at 0.02 (k + 1).

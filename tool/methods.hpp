@@ -71,6 +71,7 @@ inline std::vector<Method> methods() {
                      fc.lookahead = a.real("--lookahead", 0, 0, madbp::kMaxLookahead);  // the waypoint planned for this step
                      fc.filter = madbp::SafetyFilterParams{};  // SPEC 3.2's filter rate, 2.5/s,
                      fc.replan_error = 0;                      // and a new line every m steps only
+                     fc.unjam = 0;                             // no backing out of jams
                      return MethodSpec{[fc](const madbp::World&, uint64_t) {
                          return std::make_unique<madbp::PlanFollower>(madbp::LinePlanner{}, fc);
                      }};
