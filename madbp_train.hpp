@@ -23,6 +23,7 @@
 // Configuration macros: none beyond madbp.hpp's.
 //
 // Changelog
+//   0.4  mappo_reward: one function for the MAPPO reward terms (the tool's --reward-* flags).
 //   0.3  ModelConfig's velocity and priority contexts removed: DemoRoutes::first is gone.
 //   0.2  TrainState: one resumable scaffold, with run identity, for train, MAPPO and MADiff.
 //        Curve records (the tool draws the charts); ProgressFn; grad_clip names.
@@ -44,7 +45,8 @@
 //     content_hash, TrainState (identity, resume, atomic state files)                      [11, 12]
 //   7 training: TrainReport, curriculum_agents, train_identity, train                       [7]
 //   7b DAgger: expert_label, dagger_rollouts, DaggerConfig, DaggerRound, dagger (issue 12)
-//   8 MAPPO: observations, MappoNet, PPO loss, MappoConfig, train_mappo, MappoPolicy        [3.3]
+//   8 MAPPO: observations, MappoNet, PPO loss, MappoRewards, mappo_reward, MappoConfig,
+//     train_mappo, MappoPolicy                                                          [3.3]
 //   9 MADiff: MadiffConfig, InverseDynamics, MadiffModel, data, loss, train_madiff,
 //     MadiffPolicy                                                                          [3.4]
 
@@ -1777,6 +1779,14 @@ struct MappoRewards {
     float at_goal = 0.0f;  // per step while within the goal tolerance
 };
 
+// The reward of agent index i of `world` for the step just taken: `before` is its distance to
+// its goal before the step, `contacts` the contacts it was in during the step.
+inline float mappo_reward(const MappoRewards& r, const World& world, int i, double before, int contacts) {
+    const Agent& a = world.agents()[i];
+    return r.shaping * (float)(before - norm(a.pos - a.goal)) + r.collision * contacts + r.time +
+           (world.metrics().success ? r.success_bonus : 0.0f) + (world.at_goal(a) ? r.at_goal : 0.0f);
+}
+
 struct MappoConfig {
     std::string map = "empty";     // map name (SPEC 2)
     int agents = 2;                // team size n, in [1, 64]
@@ -1993,10 +2003,7 @@ inline MappoReport train_mappo(const MappoConfig& c, MappoNet* result = nullptr)
                 const bool success = world.metrics().success;
                 for (int i = 0; i < n; ++i) {
                     const long s = col + (long)w * n + i;
-                    const Agent& ag = world.agents()[i];
-                    ro.reward[s] = c.rewards.shaping * (float)(dist_before[(long)w * n + i] - norm(ag.pos - ag.goal)) +
-                                   c.rewards.collision * contacts[i] + c.rewards.time + (success ? c.rewards.success_bonus : 0.0f) +
-                                   (world.at_goal(ag) ? c.rewards.at_goal : 0.0f);
+                    ro.reward[s] = mappo_reward(c.rewards, world, i, dist_before[(long)w * n + i], contacts[i]);
                     ro.terminal[s] = success;
                     if (!first_done[w]) first_return[w] += ro.reward[s] / n;
                 }

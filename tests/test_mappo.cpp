@@ -194,6 +194,24 @@ TEST_CASE("mappo: observations and lidar on a hand-placed scene") {
     CHECK(detail::ray_box({0, 0.65}, {0, 1}, map.boxes[0]) == 0.0);
 }
 
+TEST_CASE("mappo: rewards per agent and step (shaping, contacts, time, team success, at goal)") {
+    MappoRewards r;
+    r.at_goal = 0.2f;
+    World world{WorldMap{}};
+    world.add_agent({0, 0}, {0, 0.05});        // within the goal tolerance (0.1)
+    world.add_agent({0.5, 0.5}, {-0.5, -0.5});
+    CHECK(mappo_reward(r, world, 0, 0.15, 0) == doctest::Approx(1.0 * (0.15 - 0.05) - 0.01 + 0.2));
+    CHECK(mappo_reward(r, world, 1, 1.5, 2) == doctest::Approx(1.0 * (1.5 - std::sqrt(2.0)) - 0.1 * 2 - 0.01));
+    r.at_goal = 0;
+    CHECK(mappo_reward(r, world, 0, 0.15, 0) == doctest::Approx(0.1 - 0.01));
+    // A team all at its goals on a step succeeds: every agent gets the bonus.
+    World alone{WorldMap{}};
+    alone.add_agent({0, 0}, {0, 0.05});
+    alone.step({{0, 0}});
+    REQUIRE(alone.metrics().success);
+    CHECK(mappo_reward(r, alone, 0, 0.05, 0) == doctest::Approx(-0.01 + 5.0));
+}
+
 TEST_CASE("mappo: a few seconds of one-agent training on the empty map learn to reach the goal [slow]") {
     MappoConfig c;
     c.map = "empty";

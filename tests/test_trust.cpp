@@ -392,3 +392,8 @@ TEST_CASE("trust: 0 is no silent 'default' for madiff --sample-steps or --time-b
     CHECK(contains(flag_error({"--time-budget", "0"}, [](Args& a) { madbp_cli::cmd_madiff(a); }), "--time-budget: 0 is out of range [0.001, 1e+09]"));
     CHECK(contains(flag_error({"--time-budget", "0"}, [](Args& a) { madbp_cli::cmd_mappo(a); }), "--time-budget: 0 is out of range"));
 }
+
+TEST_CASE("trust: mappo's reward flags refuse a penalty given as a reward") {
+    CHECK(contains(flag_error({"--reward-collision", "1"}, [](Args& a) { madbp_cli::cmd_mappo(a); }), "--reward-collision: 1 is out of range [-1000, 0]"));
+    CHECK(contains(flag_error({"--reward-at-goal", "-1"}, [](Args& a) { madbp_cli::cmd_mappo(a); }), "--reward-at-goal: -1 is out of range [0, 1000]"));
+}

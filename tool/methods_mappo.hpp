@@ -123,6 +123,9 @@ inline int cmd_mappo(Args& a) {
             "  --epochs E --minibatches M   PPO passes per rollout and minibatches per pass (4, 4)\n"
             "  --lr X --gamma G --lambda L --clip C --ent-coef E --vf-coef V --max-grad-norm N\n"
             "                      (defaults 3e-4, 0.99, 0.9, 0.2, 1e-3, 0.5, 1.0)\n"
+            "  --reward-shaping X --reward-success X --reward-collision X --reward-time X\n"
+            "  --reward-at-goal X  reward terms per agent and step (MappoRewards; defaults 1, 5,\n"
+            "                      -0.1, -0.01, 0)\n"
             "  --checkpoint-every K  iterations between checkpoints (default 10)\n"
             "  --threads T         threads (default 2); the result does not depend on it\n"
             "  --seed S            (default 0)\n"
@@ -152,6 +155,11 @@ inline int cmd_mappo(Args& a) {
     c.ppo.ent_coef = (float)a.real("--ent-coef", c.ppo.ent_coef, 0, 10);
     c.ppo.vf_coef = (float)a.real("--vf-coef", c.ppo.vf_coef, 0, 100);
     c.max_grad_norm = (float)a.real("--max-grad-norm", c.max_grad_norm, 1e-6, 1e6);
+    c.rewards.shaping = (float)a.real("--reward-shaping", c.rewards.shaping, 0, 1000);
+    c.rewards.success_bonus = (float)a.real("--reward-success", c.rewards.success_bonus, 0, 1000);
+    c.rewards.collision = (float)a.real("--reward-collision", c.rewards.collision, -1000, 0);
+    c.rewards.time = (float)a.real("--reward-time", c.rewards.time, -1000, 0);
+    c.rewards.at_goal = (float)a.real("--reward-at-goal", c.rewards.at_goal, 0, 1000);
     c.checkpoint_every = a.integer("--checkpoint-every", c.checkpoint_every, 1);
     c.threads = (int)a.integer("--threads", 2, 1, 256);
     c.seed = (uint64_t)a.integer("--seed", 0, 0);
