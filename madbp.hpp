@@ -3966,6 +3966,8 @@ private:
     std::vector<Vec2> places_;                   // arbitrate: one queue's places
     std::vector<float> walk_;                    // queue_places: walk lengths from a mouth (walk_from)
     std::vector<int> walked_;                    // the cells walk_ holds
+    std::vector<std::vector<Vec2>> queue_memo_;  // per mouth: its first queue places found so far (queue_places)
+    double queue_memo_with_[3] = {-1, -1, -1};   // the queue parameters they were found with
     std::vector<char> avoidable_;    // per passage: it has a way around within `bypass`
     std::vector<uint64_t> closed_key_;  // per passage: ClosedCells::key of its cells
     std::vector<Box> box_;              // per passage: the box of its cells' centres (arbitrate's `asked`: who may claim it)
@@ -4126,8 +4128,17 @@ private:
     // it: the line runs into walls or another aisle), of the fitting cells at least 0.8
     // queue_spacing from the places before it, the one near by nearest the point on the line;
     // with none near by, the one whose walk from the mouth is nearest that distance (docs/design.md,
-    // "Queue places").
+    // "Queue places"). Place k depends only on the map and the places before it, so each mouth's
+    // places are kept (queue_memo_) until the passages or the queue's parameters change.
     void queue_places(const ClearanceGrid& grid, int m, int count, std::vector<Vec2>& places) {
+        const double shape[3] = {params.wait_back, params.queue_spacing, params.wait_side};
+        if (!std::equal(shape, shape + 3, queue_memo_with_)) queue_memo_.clear(), std::copy(shape, shape + 3, queue_memo_with_);
+        queue_memo_.resize(mouths_.size());
+        std::vector<Vec2>& memo = queue_memo_[m];
+        if ((int)memo.size() < count) find_queue_places(grid, m, count, memo);
+        places.assign(memo.begin(), memo.begin() + count);
+    }
+    void find_queue_places(const ClearanceGrid& grid, int m, int count, std::vector<Vec2>& places) {
         const TrafficConfig& p = params;
         const Mouth& mouth = mouths_[m];
         const double lim = grid.half - p.free_clear;
@@ -4366,6 +4377,7 @@ private:
         mouth_.assign((size_t)n * n, -1);
         mouths_.clear();
         mouth_cells_.clear();
+        queue_memo_.clear();
         avoidable_.clear();
         closed_key_.clear();
         box_.clear();

@@ -2336,7 +2336,8 @@ struct FollowerConfig {
     // planning again from where it is raised barrier 6 from .96 to .97 on the tuning seeds at no
     // measurable cost (docs/experiments.md, "Replanning off the plan").
     double replan_error = 0.15;
-    // Backing out of a jam, steps, >= 0 (0: off). A robot not at its goal that the filter holds
+    // Backing out of a jam, steps, >= 0 (0: off; off without the safety filter, which is what
+    // holds a robot). A robot not at its goal that the filter holds
     // (it asks for |u| > 0.3 and is let through less than 30 % of it) for `unjam` steps in a row,
     // and has come no nearer its goal by 0.05 for 2 unjam steps, backs out for 2 unjam / 3 steps:
     // its action points to its most open side (away from the robots within filter.range and the
@@ -2382,11 +2383,12 @@ public:
             const int j = world.index_of(plan_.ids[i]);
             u[j] = track_plan(world.agents()[j], plan_.waypoints[i], ahead, model, cfg_.tracker, world.config().max_action);
         }
-        if (cfg_.unjam > 0) back_out(world, u);
+        const bool unjam = cfg_.unjam > 0 && cfg_.safety_filter;  // a robot is "held" only by the filter
+        if (unjam) back_out(world, u);
         if (cfg_.safety_filter) {
-            if (cfg_.unjam > 0) nominal_ = u;
+            if (unjam) nominal_ = u;
             u = safety_filter(world, u, cfg_.filter, filter_weights(world));
-            if (cfg_.unjam > 0)
+            if (unjam)
                 for (int i = 0; i < world.size(); ++i) {
                     Jam& jam = jams_[world.agents()[i].id];
                     jam.asked = norm(nominal_[i]), jam.got = norm(u[i]);

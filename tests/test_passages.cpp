@@ -454,6 +454,18 @@ TEST_CASE("passages: at a mouth in a corner the queue's places follow the free s
         CHECK(t.point[i].x < 0);  // in the shaft, on the mouth's side
         for (int j = 1; j < i; ++j) CHECK(norm(t.point[i] - t.point[j]) >= 0.8 * TrafficConfig{}.queue_spacing);
     }
+    // Each mouth's places are kept: a control that placed four places three as a fresh one does,
+    // and one whose queue parameters change places as a fresh one with those parameters.
+    const std::vector<Vec2> pos3{pos[0], pos[1], pos[2], pos[3]}, goal3{goal[0], goal[1], goal[2], goal[3]};
+    PassageControl kept, fresh;
+    CHECK(arbitrate(map, pos, goal, {}, &kept).point == t.point);
+    const Turns three = arbitrate(map, pos3, goal3, {}, &kept);
+    CHECK(three.point == arbitrate(map, pos3, goal3, {}, &fresh).point);
+    CHECK(std::count(three.wait.begin(), three.wait.end(), kWait) == 3);
+    kept.params.queue_spacing = fresh.params.queue_spacing = 0.45;
+    const Turns wider = arbitrate(map, pos, goal, {}, &kept);
+    CHECK(wider.point == arbitrate(map, pos, goal, {}, &fresh).point);
+    CHECK(wider.point != t.point);
 }
 
 TEST_CASE("passages: asked robots' turns are those of a call for all; robots far from their passages are not routed") {
