@@ -161,18 +161,20 @@ results: $(BUILD)/madbp
 maps-eval: $(BUILD)/madbp
 	MADBP=$(BUILD)/madbp OUT=results/maps/episodes.tsv JOBS=$(JOBS) scripts/maps_eval.sh
 
-# MADiff baselines (SPEC 3.4; docs/design.md "MADiff"): expert demonstrations, then one model per
-# map:n:steps on one thread (each <= 3 min on the 2-core machine).
-MADIFF_CELLS := empty:2:10000 empty:4:8000 empty:6:7000 obstacles:2:10000 obstacles:3:8000 obstacles:4:8000 \
-                barrier:2:10000 barrier:3:8000 barrier:4:8000
+# MADiff baselines (SPEC 3.4; docs/design.md "MADiff"): per map:n:steps, 300 episodes of the
+# shipped MAPPO policy of that cell (the paper trains MADiff on MAPPO's data; successful episodes
+# only), then one model on one thread (1.5-10 min each on the 2-core machine), sampling in 5
+# steps. Steps per cell: the best of 1000, 2000, ..., 20000 on tuning seeds 1000-1099
+# (docs/experiments.md "MADiff checkpoints").
+MADIFF_CELLS := empty:2:17000 empty:4:20000 empty:6:20000 obstacles:2:19000 obstacles:3:19000 obstacles:4:14000 \
+                barrier:2:17000 barrier:3:16000 barrier:4:13000
 madiff-models: $(BUILD)/madbp
 	@mkdir -p models/madiff
-	$(BUILD)/madbp collect --maps empty --n-train-max 6 --episodes 300 --seed 0 --threads 1 --out $(BUILD)/demos-madiff-empty.bin
-	$(BUILD)/madbp collect --maps obstacles,barrier --n-train-max 4 --episodes 300 --seed 0 --threads 1 --out $(BUILD)/demos-madiff-ob.bin
 	@set -e; for cell in $(MADIFF_CELLS); do IFS=: read map n steps <<< "$$cell"; \
-	  data=$(BUILD)/demos-madiff-ob.bin; [ $$map = empty ] && data=$(BUILD)/demos-madiff-empty.bin; \
-	  $(BUILD)/madbp madiff --map $$map --agents $$n --steps $$steps --threads 1 --seed 0 --data $$data \
-	    --out models/madiff/$$map-$$n.safetensors; \
+	  $(BUILD)/madbp collect --demonstrator mappo --model "models/mappo/$$map-{n}.safetensors" --maps $$map \
+	    --n-train-min $$n --n-train-max $$n --episodes 300 --seed 0 --threads 1 --out $(BUILD)/demos-madiff-$$map-$$n.bin; \
+	  $(BUILD)/madbp madiff --map $$map --agents $$n --steps $$steps --sample-steps 5 --threads 1 --seed 0 \
+	    --data $(BUILD)/demos-madiff-$$map-$$n.bin --out models/madiff/$$map-$$n.safetensors; \
 	  rm -f models/madiff/$$map-$$n.safetensors.train; done
 
 # The models of the paper's figures (docs/evaluation.md; `madbp eval --suite paper` reads them),

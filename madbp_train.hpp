@@ -96,7 +96,8 @@ inline DemonstratorFactory expert_demonstrator(ExpertParams p = ExpertParams{}) 
 
 struct CollectConfig {
     std::vector<std::string> maps = {"empty", "obstacles", "barrier"};
-    int n_train_max = 4;          // teams of 1 .. n_train_max agents
+    int n_train_max = 4;          // teams of n_train_min .. n_train_max agents
+    int n_train_min = 1;          // (a cell's seeds do not depend on it: MADiff collects one team size)
     int episodes = 200;           // per (map, n) cell, >= 1
     uint64_t seed = 0;            // episode e of a cell uses seed + e + 100000 * (cell index)
     bool successful_only = true;  // keep only episodes the demonstrator solved
@@ -149,14 +150,16 @@ inline Demonstration record_demonstration(World& world, Policy& policy, const st
     return d;
 }
 
-// Runs `episode(world, seed, map_name)` for every episode of c's cells (maps x teams of 1 ..
-// n_train_max, c.episodes each; c.threads in parallel) and returns the results in cell, then
-// episode, order, whatever the thread count. Episode e of a cell uses seed c.seed + e + 100000 *
-// cell, and its scenario from collect_scenario; map_name is "<map>" or "<map>/<scenario>".
+// Runs `episode(world, seed, map_name)` for every episode of c's cells (maps x teams of
+// n_train_min .. n_train_max, c.episodes each; c.threads in parallel) and returns the results in
+// cell, then episode, order, whatever the thread count. Episode e of a cell uses seed c.seed + e +
+// 100000 * cell, cell = map * n_train_max + n - 1, and its scenario from collect_scenario;
+// map_name is "<map>" or "<map>/<scenario>".
 template <class Result>
 std::vector<Result> for_each_collect_episode(const CollectConfig& c, const std::function<Result(World&, uint64_t, const std::string&)>& episode) {
     if (c.episodes < 1) throw std::invalid_argument("episodes: must be >= 1");
     if (c.n_train_max < 1 || c.n_train_max > 64) throw std::invalid_argument("n_train_max: must be in [1, 64]");
+    if (c.n_train_min < 1 || c.n_train_min > c.n_train_max) throw std::invalid_argument("n_train_min: must be in [1, n_train_max]");
     double total = 0;
     for (const auto& s : c.scenarios) {
         const auto& names = interaction_scenarios();
@@ -166,20 +169,20 @@ std::vector<Result> for_each_collect_episode(const CollectConfig& c, const std::
         total += s.second;
     }
     if (total > 1 + 1e-9) throw std::invalid_argument("scenarios: fractions sum to " + std::to_string(total) + " > 1");
-    const int cells = (int)c.maps.size() * c.n_train_max;
+    const int sizes = c.n_train_max - c.n_train_min + 1, cells = (int)c.maps.size() * sizes;
     std::vector<Result> out((size_t)cells * c.episodes);
     long done = 0;
     std::string error;
     for (int m = 0; m < (int)c.maps.size(); ++m)
-        for (int n = 1; n <= c.n_train_max; ++n) {
-            const int cell = m * c.n_train_max + (n - 1);
+        for (int n = c.n_train_min; n <= c.n_train_max; ++n) {
+            const int cell = m * c.n_train_max + (n - 1), slot = m * sizes + (n - c.n_train_min);
 #pragma omp parallel for schedule(dynamic) num_threads(std::max(1, c.threads))
             for (int e = 0; e < c.episodes; ++e) {
                 try {
                     const uint64_t seed = c.seed + e + 100000ull * cell;
                     const std::string scenario = collect_scenario(c, n, e);
                     World w = scenario.empty() ? make_random_world(c.maps[m], n, seed) : make_interaction_world(scenario, c.maps[m], n, seed);
-                    out[(size_t)cell * c.episodes + e] = episode(w, seed, scenario.empty() ? c.maps[m] : c.maps[m] + "/" + scenario);
+                    out[(size_t)slot * c.episodes + e] = episode(w, seed, scenario.empty() ? c.maps[m] : c.maps[m] + "/" + scenario);
                 } catch (const std::exception& ex) {
 #pragma omp critical
                     if (error.empty()) error = ex.what();

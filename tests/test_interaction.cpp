@@ -232,6 +232,21 @@ TEST_CASE("collect: the default mix is today's random spawns; a mix draws the na
                 CHECK(g.pos == d.pos);
                 CHECK(g.act == d.act);
             }
+    // One team size (n_train_min = n_train_max = 2, as MADiff collects): the same episodes as
+    // those cells of the full run, each map's in order; a minimum above the maximum is refused.
+    CollectConfig pairs = c;
+    pairs.n_train_min = 2;
+    const DemoSet two = collect_demonstrations(pairs, expert_demonstrator(), "expert");
+    REQUIRE(two.episodes.size() == 2 * 3);
+    for (int m = 0; m < 2; ++m)
+        for (int e = 0; e < 3; ++e) {
+            const Demonstration& full = got.episodes[(size_t)(m * 2 + 1) * 3 + e];
+            CHECK(two.episodes[(size_t)m * 3 + e].pos == full.pos);
+            CHECK(two.episodes[(size_t)m * 3 + e].agents == 2);
+        }
+    pairs.n_train_min = 3;
+    CHECK_THROWS_WITH_AS(collect_demonstrations(pairs, expert_demonstrator(), "expert"), doctest::Contains("n_train_min"),
+                         std::invalid_argument);
     // A mix: a quarter swap, half corridor, the rest random; by position in the cell.
     c.episodes = 4;
     c.scenarios = {{"swap", 0.25}, {"corridor", 0.5}};

@@ -138,6 +138,7 @@ inline int cmd_collect(Args& a) {
             "  --demonstrator D  expert (default) or mappo with --model FILE ({n} in FILE = team size)\n"
             "  --maps LIST       maps (default empty,obstacles,barrier)\n"
             "  --n-train-max N   teams of 1..N agents (default 4)\n"
+            "  --n-train-min N   teams of N..n-train-max agents only (default 1; seeds as without it)\n"
             "  --episodes E      episodes per (map, n) cell (default 500)\n"
             "  --keep-failures   also keep episodes the demonstrator failed\n"
             "  --scenarios LIST  interaction scenes mixed into every cell of n <= 4, as NAME:FRACTION items\n"
@@ -153,6 +154,8 @@ inline int cmd_collect(Args& a) {
     std::string dem = a.str("--demonstrator", "expert");
     c.maps = read_maps(a);
     c.n_train_max = (int)a.integer("--n-train-max", 4, 1, 64);
+    c.n_train_min = (int)a.integer("--n-train-min", 1, 1, 64);
+    if (c.n_train_min > c.n_train_max) throw std::invalid_argument("--n-train-min: " + std::to_string(c.n_train_min) + " exceeds --n-train-max " + std::to_string(c.n_train_max));
     c.scenarios = parse_scenario_mix(a.str("--scenarios", ""));
     c.episodes = (int)a.integer("--episodes", 500, 1, 10000000);
     c.successful_only = !a.flag("--keep-failures");
@@ -174,7 +177,7 @@ inline int cmd_collect(Args& a) {
     madbp::save_demos(out, set);
     long steps = 0;
     for (auto& d : set.episodes) steps += d.steps;
-    const long asked = (long)c.maps.size() * c.n_train_max * c.episodes;
+    const long asked = (long)c.maps.size() * (c.n_train_max - c.n_train_min + 1) * c.episodes;
     if (json)
         std::printf("%s\n", Json().add("out", out).add("demonstrator", dem).add("episodes", (long)set.episodes.size())
                                 .add("asked", asked).add("steps", steps).add("seconds", secs).line().c_str());
