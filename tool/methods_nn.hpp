@@ -155,7 +155,6 @@ inline int cmd_collect(Args& a) {
     c.maps = read_maps(a);
     c.n_train_max = (int)a.integer("--n-train-max", 4, 1, 64);
     c.n_train_min = (int)a.integer("--n-train-min", 1, 1, 64);
-    if (c.n_train_min > c.n_train_max) throw std::invalid_argument("--n-train-min: " + std::to_string(c.n_train_min) + " exceeds --n-train-max " + std::to_string(c.n_train_max));
     c.scenarios = parse_scenario_mix(a.str("--scenarios", ""));
     c.episodes = (int)a.integer("--episodes", 500, 1, 10000000);
     c.successful_only = !a.flag("--keep-failures");
