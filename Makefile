@@ -136,14 +136,17 @@ fuzz: fuzz-build
 
 # MAPPO policies (SPEC 3.3; docs/design.md "MAPPO"): map:n:iterations (~40 min on 2 cores).
 # On the obstacle map: 2x256 networks and a reward for being at the goal (docs/experiments.md,
-# "MAPPO stalls beside its goal").
+# "MAPPO stalls beside its goal"). On the barrier: the route goal 1.5 ahead observed, as
+# MA-DBP's model is told, and shaping on the route distance (docs/experiments.md, "MAPPO sees
+# the route").
 MAPPO_CELLS := empty:1:100 empty:2:200 empty:3:250 empty:4:300 empty:6:400 empty:8:500 \
                obstacles:2:500 obstacles:3:500 obstacles:4:500 barrier:2:500 barrier:3:500 barrier:4:600
 MAPPO_OBSTACLE_FLAGS := --hidden 256 --reward-at-goal 0.2
+MAPPO_BARRIER_FLAGS := --route-goal 1.5 --reward-route
 mappo-models: $(BUILD)/madbp
 	@mkdir -p models/mappo
 	@set -e; for cell in $(MAPPO_CELLS); do IFS=: read map n it <<< "$$cell"; \
-	  case $$map in obstacles) extra="$(MAPPO_OBSTACLE_FLAGS)";; *) extra="";; esac; \
+	  case $$map in obstacles) extra="$(MAPPO_OBSTACLE_FLAGS)";; barrier) extra="$(MAPPO_BARRIER_FLAGS)";; *) extra="";; esac; \
 	  $(BUILD)/madbp mappo --map $$map --agents $$n --iterations $$it --threads 2 $$extra \
 	    --out models/mappo/$$map-$$n.safetensors; done
 
@@ -165,15 +168,17 @@ maps-eval: $(BUILD)/madbp
 # shipped MAPPO policy of that cell (the paper trains MADiff on MAPPO's data; successful episodes
 # only), then one model on one thread (1.5-10 min each on the 2-core machine), sampling in 5
 # steps. Steps per cell: the best of 1000, 2000, ..., 20000 on tuning seeds 1000-1099
-# (docs/experiments.md "MADiff checkpoints").
+# (docs/experiments.md "MADiff checkpoints"). On the barrier MADiff observes the route goal, as
+# MAPPO there does.
 MADIFF_CELLS := empty:2:17000 empty:4:20000 empty:6:20000 obstacles:2:19000 obstacles:3:19000 obstacles:4:14000 \
                 barrier:2:17000 barrier:3:16000 barrier:4:13000
 madiff-models: $(BUILD)/madbp
 	@mkdir -p models/madiff
 	@set -e; for cell in $(MADIFF_CELLS); do IFS=: read map n steps <<< "$$cell"; \
+	  case $$map in barrier) extra="--route-goal 1.5";; *) extra="";; esac; \
 	  $(BUILD)/madbp collect --demonstrator mappo --model "models/mappo/$$map-{n}.safetensors" --maps $$map \
 	    --n-train-min $$n --n-train-max $$n --episodes 300 --seed 0 --threads 1 --out $(BUILD)/demos-madiff-$$map-$$n.bin; \
-	  $(BUILD)/madbp madiff --map $$map --agents $$n --steps $$steps --sample-steps 5 --threads 1 --seed 0 \
+	  $(BUILD)/madbp madiff --map $$map --agents $$n --steps $$steps --sample-steps 5 --threads 1 --seed 0 $$extra \
 	    --data $(BUILD)/demos-madiff-$$map-$$n.bin --out models/madiff/$$map-$$n.safetensors; \
 	  rm -f models/madiff/$$map-$$n.safetensors.train; done
 

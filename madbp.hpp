@@ -2001,15 +2001,18 @@ inline void encode_map(SceneBatch& batch, int scene, const WorldMap& map, const 
 // goal, never "stop here" (a goal between the pinning reach and D is a real goal). A route that
 // keeps out of `closed` (a robot going around a corridor, PassageControl) is given as subgoals
 // even without subgoal_distance (D = kRouteLookahead then).
+// (The MAPPO and MADiff baselines may be told the same, with their own D: madbp_train.hpp.)
 constexpr double kRouteLookahead = 0.8;
-inline RouteGoal route_goal(RouteGuide& guide, const ModelConfig& c, const WorldMap& map, Vec2 pos, Vec2 goal,
-                            ClosedCells closed = {}) {
-    const double D = c.subgoal_distance > 0 ? c.subgoal_distance : closed.any() ? kRouteLookahead : 0;
+inline RouteGoal route_goal(RouteGuide& guide, double D, const WorldMap& map, Vec2 pos, Vec2 goal, ClosedCells closed = {}) {
     if (D <= 0 || (norm(goal - pos) <= D && guide.in_view(map, pos, goal, closed))) return {goal, true};
     const RouteGoal next = guide.subgoal(map, pos, goal, std::min(D, kRouteLookahead), closed);
     const Vec2 d = next.goal - pos;
     if (norm(d) < 1e-9) return {goal, true};  // no direction: the goal itself
     return {pos + d * (D / norm(d)), false};
+}
+inline RouteGoal route_goal(RouteGuide& guide, const ModelConfig& c, const WorldMap& map, Vec2 pos, Vec2 goal,
+                            ClosedCells closed = {}) {
+    return route_goal(guide, c.subgoal_distance > 0 ? c.subgoal_distance : closed.any() ? kRouteLookahead : 0, map, pos, goal, closed);
 }
 
 // Agent column a (scene a / n, whose origin is set): active, with PE_agent slot `slot`, its

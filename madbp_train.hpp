@@ -1466,20 +1466,62 @@ namespace madbp {
 // ---------------------------------------------------------------------------------------------
 // MAPPO observations (SPEC 3.3; VMAS navigation)
 
-// Per agent, 18 numbers in this order (VMAS navigation's layout, lidar extended to the map):
-//   [0, 2)   position p (x, y)
-//   [2, 4)   velocity v
-//   [4, 6)   p - goal (the relative goal, pointing from the goal to the agent)
-//   [6, 18)  12 lidar readings. Ray k leaves the agent's centre at angle 2 pi k / 12 from +x,
-//            counter-clockwise (k = 0: +x, k = 3: +y, k = 6: -x, k = 9: -y). It stops at the
-//            first surface of another agent's disc, a static disc, a box or a border wall
-//            within range 0.35. The reading is 0.35 - distance, as VMAS feeds its lidar
-//            (max_range - measure): 0 when the ray hits nothing, larger when closer, 0.35
-//            when the ray starts inside a surface.
+// Per agent, 6 + R numbers in this order (VMAS navigation's layout, lidar extended to the map):
+//   [0, 2)      position p (x, y)
+//   [2, 4)      velocity v
+//   [4, 6)      p - goal (the relative goal, pointing from the goal to the agent); with a route
+//               goal D > 0, p - route_goal(D) instead: the point D ahead on the agent's route
+//               around the map, as MA-DBP's model is told (madbp.hpp route_goal; the goal itself
+//               when it is within D and in view)
+//   [6, 6 + R)  R lidar readings (default 12). Ray k leaves the agent's centre at angle
+//               2 pi k / R from +x, counter-clockwise (R = 12: k = 0 +x, k = 3 +y, k = 6 -x,
+//               k = 9 -y). It stops at the first surface of another agent's disc, a static disc,
+//               a box or a border wall within the range (default 0.35). The reading is range -
+//               distance, as VMAS feeds its lidar (max_range - measure): 0 when the ray hits
+//               nothing, larger when closer, the range when the ray starts inside a surface.
+// A policy's observation is part of its file (the layout string in "mappo.obs"). The defaults
+// are VMAS navigation's; the barrier's policies see a route goal (docs/design.md "MAPPO").
 constexpr int kLidarRays = 12;
 constexpr double kLidarRange = 0.35;
-constexpr int kMappoObs = 6 + kLidarRays;
-constexpr const char* kMappoObsLayout = "pos2,vel2,pos-goal2,lidar12@0.35(range-distance)";
+constexpr int kMappoObs = 6 + kLidarRays;  // observation size with the default lidar (MADiff's)
+
+struct MappoObservation {
+    int rays = kLidarRays;       // lidar rays, in [1, 360]
+    double range = kLidarRange;  // lidar range, world units, in (0, 10]
+    double route_goal = 0;       // D: 0 the goal itself, else the route goal D ahead, in (0, 10]
+    int size() const { return 6 + rays; }
+    // "pos2,vel2,pos-goal2,lidar12@0.35(range-distance)" (the defaults), or with a route goal
+    // "pos2,vel2,pos-routegoal2@1.5,lidar12@0.35(range-distance)": the observation, as files record it.
+    std::string layout() const {
+        return std::string("pos2,vel2,") + (route_goal > 0 ? "pos-routegoal2@" + number_text(route_goal) : std::string("pos-goal2")) +
+               ",lidar" + std::to_string(rays) + "@" + number_text(range) + "(range-distance)";
+    }
+    void check(const std::string& owner) const {
+        if (rays < 1 || rays > 360) throw std::invalid_argument(owner + ".rays: must be in [1, 360] (got " + std::to_string(rays) + ")");
+        if (!(range > 0 && range <= 10))
+            throw std::invalid_argument(owner + ".range: must be in (0, 10] world units (got " + number_text(range) + ")");
+        if (!(route_goal >= 0 && route_goal <= 10))
+            throw std::invalid_argument(owner + ".route_goal: must be 0 (off) or in (0, 10] world units (got " + number_text(route_goal) + ")");
+    }
+    // The observation a layout string names; throws std::runtime_error naming `source` for any
+    // other string.
+    static MappoObservation from_layout(const std::string& layout, const std::string& source) {
+        MappoObservation o;
+        o.rays = 0;
+        const char* rest = layout.c_str();
+        int used = 0;
+        if (std::sscanf(rest, "pos2,vel2,pos-routegoal2@%lf,%n", &o.route_goal, &used) == 1 && used > 0) rest += used;
+        else if (layout.compare(0, 20, "pos2,vel2,pos-goal2,") == 0) rest += 20;
+        else rest = "";
+        std::sscanf(rest, "lidar%d@%lf", &o.rays, &o.range);
+        if (o.rays < 1 || o.rays > 360 || !(o.range > 0 && o.range <= 10) || !(o.route_goal >= 0 && o.route_goal <= 10) ||
+            o.layout() != layout)
+            throw std::runtime_error(source + ": observation layout '" + layout + "' is not one this build reads ('" +
+                                     MappoObservation{}.layout() + "' with any ray count in [1, 360] and range in (0, 10], and " +
+                                     "pos-goal2 or pos-routegoal2@D, D in (0, 10])");
+        return o;
+    }
+};
 
 namespace detail {
 constexpr double kNoHit = std::numeric_limits<double>::infinity();
@@ -1535,34 +1577,37 @@ inline double lidar_distance(const World& world, int i, Vec2 dir, double range =
     return t;
 }
 
-// Writes agent index `i`'s 18 observation numbers (layout above) to out[0..18).
-inline void mappo_observe(const World& world, int i, float* out) {
+// Writes agent index `i`'s observation (layout above) to out[0, ob.size()). `guide` finds the
+// route goal (required when ob.route_goal > 0; it keeps the map's grid and fields between calls).
+inline void mappo_observe(const World& world, int i, float* out, const MappoObservation& ob = {}, RouteGuide* guide = nullptr) {
     const Agent& a = world.agents()[i];
-    const Vec2 rel = a.pos - a.goal;
+    if (ob.route_goal > 0 && !guide) throw std::invalid_argument("mappo_observe: an observation with a route goal needs a RouteGuide");
+    const Vec2 rel = a.pos - (ob.route_goal > 0 ? route_goal(*guide, ob.route_goal, world.map(), a.pos, a.goal).goal : a.goal);
     const float head[6] = {(float)a.pos.x, (float)a.pos.y, (float)a.vel.x, (float)a.vel.y, (float)rel.x, (float)rel.y};
     std::copy(head, head + 6, out);
-    for (int k = 0; k < kLidarRays; ++k) {
-        const double angle = 2 * M_PI * k / kLidarRays;
-        out[6 + k] = (float)(kLidarRange - lidar_distance(world, i, {std::cos(angle), std::sin(angle)}));
+    for (int k = 0; k < ob.rays; ++k) {
+        const double angle = 2 * M_PI * k / ob.rays;
+        out[6 + k] = (float)(ob.range - lidar_distance(world, i, {std::cos(angle), std::sin(angle)}, ob.range));
     }
 }
 
 // Fixed input scaling of the networks (our observation normalisation): each feature divided by
-// its natural range (world half-size 1.2 for positions, top speed 0.4, lidar range 0.35), so
+// its natural range (world half-size 1.2 for positions, top speed 0.4, the lidar's range), so
 // inputs are O(1) without running statistics that a checkpoint would have to carry.
-inline float mappo_obs_scale(int feature) {
+inline float mappo_obs_scale(int feature, const MappoObservation& ob = {}) {
     if (feature < 2 || (feature >= 4 && feature < 6)) return 1.0f / 1.2f;
     if (feature < 4) return 1.0f / 0.4f;
-    return (float)(1.0 / kLidarRange);
+    return (float)(1.0 / ob.range);
 }
 
 // Scaled observations of every agent of `world`, one column each, into columns
-// [col, col + n) of `obs` (kMappoObs rows).
-inline void mappo_observe_all(const World& world, Mat& obs, long col) {
-    float raw[kMappoObs];
+// [col, col + n) of `obs` (ob.size() rows); `guide` as for mappo_observe.
+inline void mappo_observe_all(const World& world, Mat& obs, long col, const MappoObservation& ob = {}, RouteGuide* guide = nullptr) {
+    MADBP_ASSERT(obs.rows() == ob.size());
+    std::vector<float> raw(ob.size());
     for (int i = 0; i < world.size(); ++i) {
-        mappo_observe(world, i, raw);
-        for (int f = 0; f < kMappoObs; ++f) obs(f, col + i) = raw[f] * mappo_obs_scale(f);
+        mappo_observe(world, i, raw.data(), ob, guide);
+        for (int f = 0; f < ob.size(); ++f) obs(f, col + i) = raw[f] * mappo_obs_scale(f, ob);
     }
 }
 
@@ -1570,11 +1615,12 @@ inline void mappo_observe_all(const World& world, Mat& obs, long col) {
 // for agent i, its own observation followed by the others' in index order (n * O rows). The
 // critic is centralised (it sees every agent) yet per agent, so agents keep their own rewards.
 inline void mappo_critic_input(const Mat& obs, long col, int n, Mat& critic, long out_col) {
+    const long O = obs.rows();
     for (int i = 0; i < n; ++i) {
-        critic.block(0, out_col + i, kMappoObs, 1) = obs.col(col + i);
+        critic.block(0, out_col + i, O, 1) = obs.col(col + i);
         int slot = 1;
         for (int j = 0; j < n; ++j)
-            if (j != i) critic.block((long)kMappoObs * slot++, out_col + i, kMappoObs, 1) = obs.col(col + j);
+            if (j != i) critic.block(O * slot++, out_col + i, O, 1) = obs.col(col + j);
     }
 }
 
@@ -1617,6 +1663,7 @@ struct MappoNetConfig {
     int agents = 2;            // team size n the policy is built for (>= 1)
     int hidden = 64;           // width of both hidden layers of actor and critic
     float init_log_std = -0.5f;
+    MappoObservation obs;      // what the actor observes
 };
 
 // The shared actor (scaled observation -> mean force (2), plus a state-independent learned
@@ -1632,11 +1679,12 @@ public:
     explicit MappoNet(MappoNetConfig c, uint64_t seed = 0) : config(c), params(new ParamStore) {
         if (c.agents < 1 || c.agents > 64) throw std::invalid_argument("agents: must be in [1, 64] (got " + std::to_string(c.agents) + ")");
         if (c.hidden < 1 || c.hidden > 4096) throw std::invalid_argument("hidden: must be in [1, 4096] (got " + std::to_string(c.hidden) + ")");
+        c.obs.check("obs");
         Rng rng(seed);
-        actor = Mlp(*params, "actor", kMappoObs, c.hidden, 2, rng, 0.01f);
+        actor = Mlp(*params, "actor", c.obs.size(), c.hidden, 2, rng, 0.01f);
         log_std = params->add("actor.log_std", {2}, Init::zeros(), rng);
         params->vec(log_std, 2).setConstant(c.init_log_std);
-        critic = Mlp(*params, "critic", kMappoObs * c.agents, c.hidden, 1, rng);
+        critic = Mlp(*params, "critic", c.obs.size() * c.agents, c.hidden, 1, rng);
     }
     MappoNet(MappoNet&&) = default;
     MappoNet& operator=(MappoNet&&) = default;
@@ -1648,7 +1696,7 @@ public:
     Eigen::Vector2f log_std_value() const { return params->vec(log_std, 2); }
     std::map<std::string, std::string> metadata() const {
         return {{"format", "madbp-mappo"}, {"mappo.agents", std::to_string(config.agents)},
-                {"mappo.hidden", std::to_string(config.hidden)}, {"mappo.obs", kMappoObsLayout}};
+                {"mappo.hidden", std::to_string(config.hidden)}, {"mappo.obs", config.obs.layout()}};
     }
 };
 
@@ -1777,16 +1825,70 @@ inline PpoTerms ppo_loss(MappoNet& net, const PpoBatch& b, const PpoCoefficients
 // VMAS's collision penalty is -1, but with obstacles that is a whole episode's shaping for one
 // step of contact and the policy grew timid: obstacles n = 2 reached .52 with (-1, bonus 1),
 // .88 with (-0.1, 1) and .94 with (-0.1, 5) (200 iterations, 100 evaluation episodes; docs/experiments.md).
+// With `route` set the shaping distance is the length of the shortest way around the map
+// (RouteDistance) rather than the straight one: on the barrier the straight distance rewards
+// pressing against the wall in front of the goal, a trap the policy must unlearn, while the way
+// through the gap rewards every step toward it (a potential, so the best policy is unchanged).
 struct MappoRewards {
     float shaping = 1.0f, success_bonus = 5.0f, collision = -0.1f, time = -0.01f;
     float at_goal = 0.0f;  // per step while within the goal tolerance
+    bool route = false;    // shaping on the route distance (RouteDistance), not the straight one
 };
 
-// The reward of agent index i of `world` for the step just taken: `before` is its distance to
-// its goal before the step, `contacts` the contacts it was in during the step.
-inline float mappo_reward(const MappoRewards& r, const World& world, int i, double before, int contacts) {
+// Length of the shortest way from any point to one goal around a map's obstacles, for reward
+// shaping: Dijkstra over the cells of a ClearanceGrid (cells of about 0.04) a robot's centre
+// fits in, 8-connected with steps of 1 and sqrt 2 cells (in open space at most 8 % longer than
+// the straight distance, the octile metric); at p, the least of (cell's distance + straight
+// distance from p to the cell's centre) over p's 3 x 3 cells, so it changes smoothly as a robot
+// moves. Where none of those cells is reachable (inside an obstacle), the straight distance.
+// Memory: 4 bytes a cell (3600 cells in the standard world).
+class RouteDistance {
+public:
+    RouteDistance() = default;
+    RouteDistance(const WorldMap& map, Vec2 goal, double cell = 0.04) : grid_(map, cell), goal_(goal) {
+        const int n = grid_.n;
+        dist_.assign((size_t)n * n, kFar);
+        using Item = std::pair<float, int>;
+        std::priority_queue<Item, std::vector<Item>, std::greater<Item>> open;
+        const int g = grid_.index(goal);
+        dist_[g] = (float)norm(grid_.centre(g) - goal);
+        open.push({dist_[g], g});
+        while (!open.empty()) {
+            const auto [d, k] = open.top();
+            open.pop();
+            if (d > dist_[k]) continue;
+            detail::for_each_neighbour(n, k, [&](int k2) {
+                if (grid_.clear[k2] < kPassableClearance) return;
+                const bool diagonal = k2 % n != k % n && k2 / n != k / n;
+                const float d2 = d + (float)(grid_.cell * (diagonal ? M_SQRT2 : 1.0));
+                if (d2 < dist_[k2]) dist_[k2] = d2, open.push({d2, k2});
+            });
+        }
+    }
+    double operator()(Vec2 p) const {
+        const int n = grid_.n, k = grid_.index(p), row = k / n, col = k % n;
+        double best = kFar;
+        for (int r = std::max(0, row - 1); r <= std::min(n - 1, row + 1); ++r)
+            for (int c = std::max(0, col - 1); c <= std::min(n - 1, col + 1); ++c) {
+                const int k2 = r * n + c;
+                if (dist_[k2] < kFar) best = std::min(best, dist_[k2] + norm(p - grid_.centre(k2)));
+            }
+        return best < kFar ? best : norm(p - goal_);
+    }
+
+private:
+    static constexpr float kFar = std::numeric_limits<float>::infinity();
+    ClearanceGrid grid_;
+    Vec2 goal_;
+    std::vector<float> dist_;
+};
+
+// The reward of agent index i of `world` for the step just taken: `before` and `after` are its
+// shaping distances to its goal (straight or RouteDistance) before and after the step,
+// `contacts` the contacts it was in during the step.
+inline float mappo_reward(const MappoRewards& r, const World& world, int i, double before, double after, int contacts) {
     const Agent& a = world.agents()[i];
-    return r.shaping * (float)(before - norm(a.pos - a.goal)) + r.collision * contacts + r.time +
+    return r.shaping * (float)(before - after) + r.collision * contacts + r.time +
            (world.metrics().success ? r.success_bonus : 0.0f) + (world.at_goal(a) ? r.at_goal : 0.0f);
 }
 
@@ -1796,6 +1898,7 @@ struct MappoConfig {
     double half_size = 1.2;        // world half-size
     int hidden = 64;               // actor and critic width (2 hidden layers, Tanh)
     float init_log_std = -0.5f;
+    MappoObservation obs;          // what the actor observes (lidar, goal or route goal)
     int worlds = 32;               // worlds stepping together; each iteration plays max_steps (100) steps on each
     long iterations = 300;         // rollout + update rounds
     int epochs = 4;                // passes over each rollout
@@ -1815,6 +1918,7 @@ struct MappoConfig {
     void validate() const {
         Rng probe(0);
         make_map(map, probe, half_size);  // throws on an unknown name
+        obs.check("obs");
         if (agents < 1 || agents > 64) throw std::invalid_argument("agents: must be in [1, 64] (got " + std::to_string(agents) + ")");
         if (worlds < 1 || iterations < 1 || epochs < 1 || minibatches < 1 || checkpoint_every < 1)
             throw std::invalid_argument("MappoConfig: worlds, iterations, epochs, minibatches, checkpoint_every must be >= 1");
@@ -1831,7 +1935,8 @@ struct MappoConfig {
                 {"mappo.vf_coef", f(ppo.vf_coef)}, {"mappo.ent_coef", f(ppo.ent_coef)},
                 {"mappo.max_grad_norm", f(max_grad_norm)}, {"mappo.seed", std::to_string(seed)},
                 {"mappo.rewards", "shaping " + f(rewards.shaping) + ", success " + f(rewards.success_bonus) +
-                                      ", collision " + f(rewards.collision) + ", time " + f(rewards.time) + ", at_goal " + f(rewards.at_goal)}};
+                                      ", collision " + f(rewards.collision) + ", time " + f(rewards.time) + ", at_goal " + f(rewards.at_goal) +
+                                      (rewards.route ? ", route distance" : "")}};
     }
 };
 
@@ -1884,10 +1989,8 @@ inline MappoNet mappo_from(const SafeTensors& st) {
     if (it == st.metadata.end() || it->second != "madbp-mappo")
         throw std::runtime_error(st.source + ": not a MAPPO policy (__metadata__['format'] is '" +
                                  (it == st.metadata.end() ? std::string("missing") : it->second) + "', expected 'madbp-mappo')");
-    if (st.meta("mappo.obs") != kMappoObsLayout)
-        throw std::runtime_error(st.source + ": observation layout '" + st.meta("mappo.obs") + "' is not this build's '" +
-                                 kMappoObsLayout + "'");
     MappoNetConfig c;
+    c.obs = MappoObservation::from_layout(st.meta("mappo.obs"), st.source);
     c.agents = meta_int(st, "mappo.agents", 1, 64);
     c.hidden = meta_int(st, "mappo.hidden", 1, 4096);
     const ParamBudget budget(st.values(), st.source);  // the declared net may need no more values than the file holds
@@ -1917,6 +2020,7 @@ inline MappoReport train_mappo(const MappoConfig& c, MappoNet* result = nullptr)
     nc.agents = c.agents;
     nc.hidden = c.hidden;
     nc.init_log_std = c.init_log_std;
+    nc.obs = c.obs;
     MappoNet net(nc, c.seed);
     Adam adam;
     adam.lr = c.lr;
@@ -1938,7 +2042,7 @@ inline MappoReport train_mappo(const MappoConfig& c, MappoNet* result = nullptr)
         iteration = state.resume(c.iterations, (long)c.epochs * std::min<long>(c.minibatches, samples));
         seconds_before = state.resumed_numbers("mappo.seconds", 1)[0];
     }
-    const int n = c.agents, W = c.worlds, O = kMappoObs;
+    const int n = c.agents, W = c.worlds, O = c.obs.size();
     WorldConfig wc;
     const int T = wc.max_steps;
     const long S = (long)T * W * n, per_step = (long)W * n;
@@ -1948,6 +2052,8 @@ inline MappoReport train_mappo(const MappoConfig& c, MappoNet* result = nullptr)
     std::vector<std::vector<Vec2>> actions(W, std::vector<Vec2>(n));
     Mat step_obs(O, per_step), step_critic((long)O * n, per_step), mean, values;
     std::vector<double> dist_before(per_step);
+    std::vector<std::vector<RouteDistance>> routes(W);  // per world, per agent (rewards.route)
+    std::vector<RouteGuide> guides(W);                  // per world (route goals in observations)
     PpoWorkspace ws;
     PpoBatch mb;
     const auto t_start = std::chrono::steady_clock::now();
@@ -1964,8 +2070,18 @@ inline MappoReport train_mappo(const MappoConfig& c, MappoNet* result = nullptr)
         state.save(iteration, md);
     };
     auto fresh_world = [&](uint64_t seed) { return make_random_world(c.map, n, seed, c.half_size, wc); };
+    // A world's shaping distances: fields made when the world is, read every step.
+    auto make_routes = [&](int w) {
+        routes[w].clear();
+        if (c.rewards.route)
+            for (const Agent& ag : batch.worlds[w].agents()) routes[w].emplace_back(batch.worlds[w].map(), ag.goal);
+    };
+    auto shaping_distance = [&](int w, int i) {
+        const Agent& ag = batch.worlds[w].agents()[i];
+        return c.rewards.route ? routes[w][i](ag.pos) : norm(ag.pos - ag.goal);
+    };
     auto observe_world = [&](int w) {
-        mappo_observe_all(batch.worlds[w], step_obs, (long)w * n);
+        mappo_observe_all(batch.worlds[w], step_obs, (long)w * n, c.obs, &guides[w]);
         mappo_critic_input(step_obs, (long)w * n, n, step_critic, (long)w * n);
     };
     while (iteration < c.iterations) {
@@ -1975,7 +2091,7 @@ inline MappoReport train_mappo(const MappoConfig& c, MappoNet* result = nullptr)
         std::vector<uint8_t> first_done(W, 0), first_success(W, 0);
         std::vector<double> first_return(W, 0);
 #pragma omp parallel for schedule(static)
-        for (int w = 0; w < W; ++w) observe_world(w);
+        for (int w = 0; w < W; ++w) make_routes(w), observe_world(w);
         for (int t = 0; t < T; ++t) {
             const long col = t * per_step;
             net.actor.forward(step_obs, mean);
@@ -1987,8 +2103,7 @@ inline MappoReport train_mappo(const MappoConfig& c, MappoNet* result = nullptr)
                 ro.act(0, col + k) = a[0], ro.act(1, col + k) = a[1];
                 ro.logp[col + k] = gaussian_log_prob(a, &mean(0, k), ls.data());
                 actions[k / n][k % n] = clamp_box(Vec2{a[0], a[1]}, wc.max_action);
-                const Agent& ag = batch.worlds[k / n].agents()[k % n];
-                dist_before[k] = norm(ag.pos - ag.goal);
+                dist_before[k] = shaping_distance((int)(k / n), (int)(k % n));
             }
             ro.obs.middleCols(col, per_step) = step_obs;
             ro.critic_in.middleCols(col, per_step) = step_critic;
@@ -2006,13 +2121,13 @@ inline MappoReport train_mappo(const MappoConfig& c, MappoNet* result = nullptr)
                 const bool success = world.metrics().success;
                 for (int i = 0; i < n; ++i) {
                     const long s = col + (long)w * n + i;
-                    ro.reward[s] = mappo_reward(c.rewards, world, i, dist_before[(long)w * n + i], contacts[i]);
+                    ro.reward[s] = mappo_reward(c.rewards, world, i, dist_before[(long)w * n + i], shaping_distance(w, i), contacts[i]);
                     ro.terminal[s] = success;
                     if (!first_done[w]) first_return[w] += ro.reward[s] / n;
                 }
                 if (world.done()) {
                     if (!first_done[w]) first_done[w] = 1, first_success[w] = success;
-                    if (t + 1 < T) world = fresh_world(reseed[w]);
+                    if (t + 1 < T) world = fresh_world(reseed[w]), make_routes(w);
                 }
                 observe_world(w);
             }
@@ -2095,8 +2210,8 @@ public:
         if (world.size() != n)
             throw std::invalid_argument("mappo: the policy was trained for " + std::to_string(n) + " agents, the world has " +
                                         std::to_string(world.size()) + " (MAPPO is trained per team size)");
-        obs_.resize(kMappoObs, n);
-        mappo_observe_all(world, obs_, 0);
+        obs_.resize(net_.config.obs.size(), n);
+        mappo_observe_all(world, obs_, 0, net_.config.obs, &guide_);
         net_.actor.forward(obs_, mean_);
         std::vector<Vec2> u(n);
         for (int i = 0; i < n; ++i) u[i] = clamp_box(Vec2{mean_(0, i), mean_(1, i)}, world.config().max_action);
@@ -2110,6 +2225,7 @@ public:
 private:
     MappoNet net_;
     Mat obs_, mean_;
+    RouteGuide guide_;  // route goals (a policy whose observation has one)
     double total_ms_ = 0;
     long calls_ = 0;
 };
@@ -2214,10 +2330,13 @@ struct MadiffConfig {
     float guidance = 1.2f;               // w of classifier-free guidance
     float condition_dropout = 0.25f;     // training: probability a window's return is dropped
     float x0_clip = 1.0f;                // sampling: x0_hat clipped to [-x0_clip, x0_clip] (normalised observations)
+    double route_goal = 0;               // observed goal: 0 the goal, else the route goal this far ahead (MappoObservation)
     // Data-derived (set by train_madiff): raw return range and the normalised sampling target.
     float return_min = 0, return_max = 1, return_target = 0.9f;
 
     int levels() const { return (int)channels.size(); }
+    // The observation: MAPPO's default lidar, the goal or the route goal.
+    MappoObservation observation() const { return {kLidarRays, kLidarRange, route_goal}; }
     void validate() const {
         auto bad = [](const std::string& f, const std::string& why) { throw std::invalid_argument("madiff config " + f + ": " + why); };
         if (agents < 1 || agents > 64) bad("agents", std::to_string(agents) + " must be in [1, 64]");
@@ -2238,6 +2357,7 @@ struct MadiffConfig {
         if (!std::isfinite(return_min) || !std::isfinite(return_max) || !(return_max > return_min))
             bad("return_min/return_max", "need finite values with max > min");
         if (!(return_target >= -10 && return_target <= 10)) bad("return_target", "must be in [-10, 10]");
+        if (!(route_goal >= 0 && route_goal <= 10)) bad("route_goal", "must be 0 (off) or in (0, 10]");
     }
     std::map<std::string, std::string> to_metadata() const {
         auto f = [](double v) { char b[32]; std::snprintf(b, sizeof b, "%.9g", v); return std::string(b); };
@@ -2250,7 +2370,7 @@ struct MadiffConfig {
                 {"madiff.sample_steps", std::to_string(sample_steps)}, {"madiff.guidance", f(guidance)},
                 {"madiff.condition_dropout", f(condition_dropout)}, {"madiff.clip", f(x0_clip)},
                 {"madiff.return_min", f(return_min)}, {"madiff.return_max", f(return_max)},
-                {"madiff.return_target", f(return_target)}, {"madiff.obs", kMappoObsLayout},
+                {"madiff.return_target", f(return_target)}, {"madiff.obs", observation().layout()},
                 {"madiff.prediction", "x0"}, {"madiff.normalizer", "limits"}};
     }
     static MadiffConfig from_metadata(const SafeTensors& st) {
@@ -2261,9 +2381,10 @@ struct MadiffConfig {
         if (st.meta("madiff.prediction") != "x0" || st.meta("madiff.normalizer") != "limits")
             throw std::runtime_error(st.source + ": prediction '" + st.meta("madiff.prediction") + "' / normalizer '" +
                                      st.meta("madiff.normalizer") + "' are not this build's 'x0' / 'limits'");
-        if (st.meta("madiff.obs") != kMappoObsLayout)
-            throw std::runtime_error(st.source + ": observation layout '" + st.meta("madiff.obs") + "' is not this build's '" +
-                                     kMappoObsLayout + "'");
+        const MappoObservation ob = MappoObservation::from_layout(st.meta("madiff.obs"), st.source);
+        if (ob.rays != kLidarRays || ob.range != kLidarRange)
+            throw std::runtime_error(st.source + ": observation layout '" + st.meta("madiff.obs") + "': MADiff observes with the default lidar (" +
+                                     std::to_string(kLidarRays) + " rays of " + number_text(kLidarRange) + ")");
         auto real = [&](const std::string& k) {
             const std::string& s = st.meta(k);
             char* end = nullptr;
@@ -2273,6 +2394,7 @@ struct MadiffConfig {
             return v;
         };
         MadiffConfig c;
+        c.route_goal = ob.route_goal;
         c.map = st.meta("madiff.map");
         c.agents = detail::meta_int(st, "madiff.agents", 1, 64);
         c.horizon = detail::meta_int(st, "madiff.horizon", 2, 256);
@@ -2521,21 +2643,23 @@ inline float madiff_step_reward(const Demonstration& d, int t, double radius = W
     return (float)(sum / n);
 }
 
-// Scaled observations (as mappo_observe_all) of every frame of d, (O, frames*n).
-inline Mat madiff_episode_observations(const Demonstration& d) {
+// Scaled observations `ob` (as mappo_observe_all) of every frame of d, (O, frames*n).
+inline Mat madiff_episode_observations(const Demonstration& d, const MappoObservation& ob) {
     const int n = d.agents, frames = d.steps + 1;
     World w(d.map);
     for (int i = 0; i < n; ++i) w.add_agent(d.pos[i], d.goals[i]);
-    Mat obs(kMappoObs, (long)frames * n);
+    Mat obs(ob.size(), (long)frames * n);
+    RouteGuide guide;
     for (int f = 0; f < frames; ++f) {
         for (int i = 0; i < n; ++i) w.set_state(w.agents()[i].id, d.pos[(size_t)f * n + i], d.vel[(size_t)f * n + i]);
-        mappo_observe_all(w, obs, (long)f * n);
+        mappo_observe_all(w, obs, (long)f * n, ob, &guide);
     }
     return obs;
 }
 
-// Selects the episodes of `demos` on `map` with exactly n agents and at least H frames.
-inline MadiffData madiff_data(const DemoSet& demos, const std::string& map, int n, int H) {
+// Selects the episodes of `demos` on `map` with exactly n agents and at least H frames, observed
+// as `ob` (default: MAPPO's default observation).
+inline MadiffData madiff_data(const DemoSet& demos, const std::string& map, int n, int H, const MappoObservation& ob = {}) {
     MadiffData out;
     out.n = n, out.H = H;
     for (size_t e = 0; e < demos.episodes.size(); ++e) {
@@ -2544,7 +2668,7 @@ inline MadiffData madiff_data(const DemoSet& demos, const std::string& map, int 
         if ((long)d.act.size() != (long)d.steps * n) throw std::invalid_argument("madiff: episode " + std::to_string(e) + " has no actions");
         Mat obs;
         try {
-            obs = madiff_episode_observations(d);
+            obs = madiff_episode_observations(d, ob);
         } catch (const std::exception& ex) {
             throw std::invalid_argument("madiff: episode " + std::to_string(e) + " of the dataset: " + ex.what());
         }
@@ -2709,7 +2833,7 @@ inline MadiffReport train_madiff(const DemoSet& demos, MadiffConfig mc, const Ma
     }
     mc.validate();
     set_num_threads(std::max(1, tc.threads));
-    MadiffData data = madiff_data(demos, mc.map, mc.agents, mc.horizon);
+    MadiffData data = madiff_data(demos, mc.map, mc.agents, mc.horizon, mc.observation());
     std::vector<float> sorted = data.window_return;
     std::sort(sorted.begin(), sorted.end());
     mc.return_min = sorted.front();
@@ -2836,7 +2960,7 @@ public:
             if (!std::isfinite(a.pos.x + a.pos.y + a.vel.x + a.vel.y + a.goal.x + a.goal.y))
                 throw std::invalid_argument("madiff: agent " + std::to_string(a.id) + " has a non-finite state or goal");
         obs_.resize(O, n);
-        mappo_observe_all(world, obs_, 0);
+        mappo_observe_all(world, obs_, 0, c.observation(), &guide_);
         model_.normalize(obs_);
         x_.resize(O, (long)H * n);
         for (long j = 0; j < x_.size(); ++j) x_.data()[j] = (float)rng_.normal();
@@ -2878,6 +3002,7 @@ private:
     NoiseSchedule schedule_;
     Rng rng_;
     Mat obs_, x_, xx_, out_, eps_c_, eps_u_, eps_, x0_, o_next_, a_;
+    RouteGuide guide_;  // route goals (a model whose observation has one)
     double total_ms_ = 0;
     long calls_ = 0;
 };

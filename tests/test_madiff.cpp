@@ -351,6 +351,7 @@ TEST_CASE("madiff: checkpoint round trip; truncated and foreign files are clear 
     const std::string path = temp_path("model.safetensors");
     MadiffConfig cfg = tiny_config();
     cfg.return_target = 0.7f;
+    cfg.route_goal = 1.5;  // the observed goal: the route goal 1.5 ahead (MappoObservation)
     MadiffModel m(cfg, 3);
     Rng rng(4);
     Vec lo(kMappoObs), hi(kMappoObs);
@@ -359,6 +360,7 @@ TEST_CASE("madiff: checkpoint round trip; truncated and foreign files are clear 
     save_madiff(path, m, {{"demonstrator", "expert"}});
     MadiffModel back = load_madiff(path);
     CHECK(back.config.to_metadata() == m.config.to_metadata());
+    CHECK(back.config.route_goal == 1.5);
     CHECK(back.params->value == m.params->value);
     CHECK(!back.training());
     // Same seed and world: the same actions from the original and the loaded model.
@@ -383,6 +385,13 @@ TEST_CASE("madiff: checkpoint round trip; truncated and foreign files are clear 
     md["madiff.agents"] = "many";
     save_params(path + ".other", *m.params, md);
     CHECK_THROWS_WITH_AS(load_madiff(path + ".other"), doctest::Contains("madiff.agents"), std::runtime_error);
+    md = m.config.to_metadata();
+    md["madiff.obs"] = "pos2,vel2,pos-goal2,lidar24@1(range-distance)";  // MAPPO may have another lidar; MADiff may not
+    save_params(path + ".other", *m.params, md);
+    CHECK_THROWS_WITH_AS(load_madiff(path + ".other"), doctest::Contains("default lidar"), std::runtime_error);
+    md["madiff.obs"] = "pos2,vel2,pos-goal2";
+    save_params(path + ".other", *m.params, md);
+    CHECK_THROWS_WITH_AS(load_madiff(path + ".other"), doctest::Contains("observation layout"), std::runtime_error);
     CHECK_THROWS_AS(load_madiff(path + ".missing"), std::runtime_error);
     for (const char* ext : {"", ".cut", ".mappo", ".other"}) std::remove((path + ext).c_str());
 }

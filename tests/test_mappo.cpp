@@ -189,6 +189,20 @@ TEST_CASE("mappo: observations and lidar on a hand-placed scene") {
     // centre (0.5, 0.95) at perpendicular distance 0.2 * sin(30) = 0.1 = r: a tangent hit.
     const double tangent = lidar_distance(world, 0, {std::cos(M_PI / 6), std::sin(M_PI / 6)});
     CHECK(tangent == doctest::Approx(0.2 * std::cos(M_PI / 6)).epsilon(1e-3));
+    // Another lidar (a policy's own, from its file): 4 rays of range 0.2 see the disc and B
+    // but not the wall 0.25 above; readings are scaled by the range.
+    const MappoObservation four{4, 0.2};
+    float obs4[6 + 4];
+    mappo_observe(world, 0, obs4, four);
+    CHECK(obs4[6 + 0] == doctest::Approx(0.2 - 0.1));
+    CHECK(obs4[6 + 1] == 0.0f);
+    CHECK(obs4[6 + 2] == doctest::Approx(0.2 - 0.15));
+    CHECK(mappo_obs_scale(6, four) == doctest::Approx(5.0));
+    Mat all(four.size(), 2);
+    mappo_observe_all(world, all, 0, four);
+    CHECK(all(6, 0) == doctest::Approx((0.2 - 0.1) * 5));
+    CHECK(four.layout() == "pos2,vel2,pos-goal2,lidar4@0.2(range-distance)");
+    CHECK(MappoObservation{}.layout() == "pos2,vel2,pos-goal2,lidar12@0.35(range-distance)");  // the shipped files' layout
     // From inside an obstacle a ray reads the full range.
     CHECK(detail::ray_disc({0.5, 0.95}, {1, 0}, {0.5, 0.95}, 0.1) == 0.0);
     CHECK(detail::ray_box({0, 0.65}, {0, 1}, map.boxes[0]) == 0.0);
@@ -200,16 +214,55 @@ TEST_CASE("mappo: rewards per agent and step (shaping, contacts, time, team succ
     World world{WorldMap{}};
     world.add_agent({0, 0}, {0, 0.05});        // within the goal tolerance (0.1)
     world.add_agent({0.5, 0.5}, {-0.5, -0.5});
-    CHECK(mappo_reward(r, world, 0, 0.15, 0) == doctest::Approx(1.0 * (0.15 - 0.05) - 0.01 + 0.2));
-    CHECK(mappo_reward(r, world, 1, 1.5, 2) == doctest::Approx(1.0 * (1.5 - std::sqrt(2.0)) - 0.1 * 2 - 0.01));
+    CHECK(mappo_reward(r, world, 0, 0.15, 0.05, 0) == doctest::Approx(1.0 * (0.15 - 0.05) - 0.01 + 0.2));
+    CHECK(mappo_reward(r, world, 1, 1.5, std::sqrt(2.0), 2) == doctest::Approx(1.0 * (1.5 - std::sqrt(2.0)) - 0.1 * 2 - 0.01));
     r.at_goal = 0;
-    CHECK(mappo_reward(r, world, 0, 0.15, 0) == doctest::Approx(0.1 - 0.01));
+    CHECK(mappo_reward(r, world, 0, 0.15, 0.05, 0) == doctest::Approx(0.1 - 0.01));
     // A team all at its goals on a step succeeds: every agent gets the bonus.
     World alone{WorldMap{}};
     alone.add_agent({0, 0}, {0, 0.05});
     alone.step({{0, 0}});
     REQUIRE(alone.metrics().success);
-    CHECK(mappo_reward(r, alone, 0, 0.05, 0) == doctest::Approx(-0.01 + 5.0));
+    CHECK(mappo_reward(r, alone, 0, 0.05, 0.05, 0) == doctest::Approx(-0.01 + 5.0));
+}
+
+TEST_CASE("mappo: the route distance and the route goal go around the barrier, through its gap") {
+    Rng rng(3);
+    const WorldMap map = make_map("barrier", rng);
+    REQUIRE(map.boxes.size() == 2);
+    const double gap_x = map.boxes[0].hi.x + 0.25;  // the gap's centre (width 0.5)
+    const Vec2 goal{0.8, 0.6};
+    const RouteDistance route(map, goal);
+    // In open view of the goal: never below the straight distance, and at most 8.3 % and a cell
+    // above it (8-connected steps: an octile distance, at most 1.082 times the straight one).
+    for (Vec2 p : {Vec2{0.8, 0.6}, Vec2{0.3, 0.9}, Vec2{-0.9, 0.3}, Vec2{0.8, 0.2}}) {
+        CHECK(route(p) >= norm(p - goal) - 1e-9);
+        CHECK(route(p) <= 1.083 * norm(p - goal) + 0.06);
+    }
+    // Across the wall: the way through the gap, within 6 % of its length.
+    const Vec2 p{0.8, -0.6}, mouth{gap_x, 0};
+    const double through_gap = norm(p - mouth) + norm(mouth - goal);
+    CHECK(route(p) == doctest::Approx(through_gap).epsilon(0.06));
+    CHECK(route(p) > norm(p - goal) + 0.1);
+    // Moving along the wall toward the gap shortens it; a step changes it by about the step.
+    const double toward = gap_x < 0.8 ? -0.04 : 0.04;
+    CHECK(route({0.8 + toward, -0.2}) < route({0.8, -0.2}));
+    CHECK(std::fabs(route({0.81, -0.6}) - route({0.8, -0.6})) < 0.03);
+    // Inside the wall (no robot fits): the straight distance.
+    CHECK(route({gap_x + 0.6, 0}) == doctest::Approx(norm(Vec2{gap_x + 0.6, 0} - goal)));
+    // An observation with a route goal: the point 1.5 ahead on the way through the gap.
+    World world(map);
+    world.add_agent(p, goal);
+    const MappoObservation ob{kLidarRays, kLidarRange, 1.5};
+    RouteGuide guide;
+    float obs[kMappoObs];
+    mappo_observe(world, 0, obs, ob, &guide);
+    const Vec2 ahead = p - Vec2{obs[4], obs[5]};
+    CHECK(norm(ahead - p) == doctest::Approx(1.5).epsilon(1e-4));
+    CHECK((ahead.x - p.x) * (gap_x - p.x) > 0);  // toward the gap, not straight at the goal
+    CHECK_THROWS_WITH_AS(mappo_observe(world, 0, obs, ob), doctest::Contains("needs a RouteGuide"), std::invalid_argument);
+    CHECK(ob.layout() == "pos2,vel2,pos-routegoal2@1.5,lidar12@0.35(range-distance)");
+    CHECK(MappoObservation::from_layout(ob.layout(), "f").route_goal == 1.5);
 }
 
 TEST_CASE("mappo: a few seconds of one-agent training on the empty map learn to reach the goal [slow]") {
@@ -237,11 +290,16 @@ TEST_CASE("mappo: checkpoints round-trip; resume is exact; runs are deterministi
     MappoConfig c = tiny_config("obstacles", 2, 4);
     c.out = out;
     c.checkpoint_every = 2;
+    c.obs = {16, 0.6, 1.5};  // a policy's own observation travels in its file
+    c.rewards.route = true;  // route fields are made for every fresh world, resumed or not
     MappoNet full(MappoNetConfig{});
     train_mappo(c, &full);
     MappoNet loaded = load_mappo(out);
     CHECK(loaded.config.agents == 2);
     CHECK(loaded.config.hidden == 16);
+    CHECK(loaded.config.obs.rays == 16);
+    CHECK(loaded.config.obs.range == 0.6);
+    CHECK(loaded.config.obs.route_goal == 1.5);
     CHECK(loaded.params->value == full.params->value);
     SafeTensors st = load_safetensors(out);
     CHECK(st.meta("mappo.map") == "obstacles");
@@ -306,12 +364,30 @@ TEST_CASE("mappo: bad input raises clear errors") {
     md["mappo.agents"] = "three";
     save_params(foreign, *net.params, md);
     CHECK_THROWS_WITH_AS(load_mappo(foreign), doctest::Contains("mappo.agents"), std::runtime_error);
+    md = net.metadata();
+    for (const char* layout : {"pos2,vel2,pos-goal2,lidar0@0.35(range-distance)", "pos2,vel2,pos-goal2,lidar12@0.350(range-distance)",
+                               "pos2,vel2,lidar12@0.35", ""}) {
+        md["mappo.obs"] = layout;
+        save_params(foreign, *net.params, md);
+        CHECK_THROWS_WITH_AS(load_mappo(foreign), doctest::Contains("observation layout"), std::runtime_error);
+    }
+    md = net.metadata();
+    md["mappo.obs"] = "pos2,vel2,pos-goal2,lidar24@1(range-distance)";  // a valid layout, not these tensors'
+    save_params(foreign, *net.params, md);
+    CHECK_THROWS_WITH_AS(load_mappo(foreign), doctest::Contains("does not match the file"), std::runtime_error);
     std::remove(foreign.c_str());
     CHECK_THROWS_AS(load_mappo(temp_path("missing.safetensors")), std::runtime_error);
     MappoConfig c = tiny_config("moon", 2, 1);
     CHECK_THROWS_WITH_AS(train_mappo(c), doctest::Contains("unknown map name 'moon'"), std::invalid_argument);
     c = tiny_config("empty", 0, 1);
     CHECK_THROWS_WITH_AS(train_mappo(c), doctest::Contains("agents"), std::invalid_argument);
+    c = tiny_config("empty", 2, 1);
+    c.obs.rays = 0;
+    CHECK_THROWS_WITH_AS(train_mappo(c), doctest::Contains("obs.rays"), std::invalid_argument);
+    c.obs = {12, 0};
+    CHECK_THROWS_WITH_AS(train_mappo(c), doctest::Contains("obs.range"), std::invalid_argument);
+    c.obs = {12, 0.35, -1};
+    CHECK_THROWS_WITH_AS(train_mappo(c), doctest::Contains("obs.route_goal"), std::invalid_argument);
     c = tiny_config("empty", 2, 1);
     c.resume = true;
     c.out = temp_path("never-written.safetensors");

@@ -72,6 +72,8 @@ inline int cmd_madiff(Args& a) {
             "  --batch B           windows per step, each with N agents (default 32)\n"
             "  --horizon H         frames per window (default 8; multiple of 4)\n"
             "  --sample-steps S    DDIM steps the policy uses by default (default 10)\n"
+            "  --route-goal D      observe the point D ahead on the route around the map (as\n"
+            "                      MA-DBP's model and MAPPO --route-goal), not the goal (default 0)\n"
             "  --lr X              Adam learning rate (default 3e-4)\n"
             "  --threads T         threads (default 1); the result does not depend on it\n"
             "  --seed S            (default 0)\n"
@@ -90,6 +92,7 @@ inline int cmd_madiff(Args& a) {
     tc.batch = (int)a.integer("--batch", tc.batch, 1, 100000);
     mc.horizon = (int)a.integer("--horizon", mc.horizon, 2, 256);
     mc.sample_steps = (int)a.integer("--sample-steps", mc.sample_steps, 1, 100000);
+    mc.route_goal = a.real("--route-goal", mc.route_goal, 0, 10);
     tc.lr = (float)a.real("--lr", tc.lr, 1e-8, 0.999);
     tc.threads = (int)a.integer("--threads", 1, 1, 256);
     tc.seed = (uint64_t)a.integer("--seed", 0, 0);

@@ -120,12 +120,17 @@ inline int cmd_mappo(Args& a) {
             "  --time-budget S     stop after S seconds of training (default: none)\n"
             "  --worlds W          worlds stepping together (default 32)\n"
             "  --hidden H          width of the 2 hidden Tanh layers of actor and critic (default 64)\n"
+            "  --lidar-rays R --lidar-range X  the observation's lidar (default 12 rays of 0.35)\n"
+            "  --route-goal D      observe the point D ahead on the route around the map (as\n"
+            "                      MA-DBP's model), not the goal (default 0: the goal)\n"
             "  --epochs E --minibatches M   PPO passes per rollout and minibatches per pass (4, 4)\n"
             "  --lr X --gamma G --lambda L --clip C --ent-coef E --vf-coef V --max-grad-norm N\n"
             "                      (defaults 3e-4, 0.99, 0.9, 0.2, 1e-3, 0.5, 1.0)\n"
             "  --reward-shaping X --reward-success X --reward-collision X --reward-time X\n"
             "  --reward-at-goal X  reward terms per agent and step (MappoRewards; defaults 1, 5,\n"
             "                      -0.1, -0.01, 0)\n"
+            "  --reward-route      shape on the distance along the shortest way around the map,\n"
+            "                      not the straight one (for maps with walls, e.g. the barrier)\n"
             "  --checkpoint-every K  iterations between checkpoints (default 10)\n"
             "  --threads T         threads (default 2); the result does not depend on it\n"
             "  --seed S            (default 0)\n"
@@ -146,6 +151,9 @@ inline int cmd_mappo(Args& a) {
     const double budget = a.real("--time-budget", 0, 1e-3, 1e9);  // 0 (not given): none; --time-budget 0 is an error
     c.worlds = (int)a.integer("--worlds", c.worlds, 1, 100000);
     c.hidden = (int)a.integer("--hidden", c.hidden, 1, 4096);
+    c.obs.rays = (int)a.integer("--lidar-rays", c.obs.rays, 1, 360);
+    c.obs.range = a.real("--lidar-range", c.obs.range, 1e-3, 10);
+    c.obs.route_goal = a.real("--route-goal", c.obs.route_goal, 0, 10);
     c.epochs = (int)a.integer("--epochs", c.epochs, 1, 1000);
     c.minibatches = (int)a.integer("--minibatches", c.minibatches, 1, 100000);
     c.lr = (float)a.real("--lr", c.lr, 1e-8, 1);
@@ -160,6 +168,7 @@ inline int cmd_mappo(Args& a) {
     c.rewards.collision = (float)a.real("--reward-collision", c.rewards.collision, -1000, 0);
     c.rewards.time = (float)a.real("--reward-time", c.rewards.time, -1000, 0);
     c.rewards.at_goal = (float)a.real("--reward-at-goal", c.rewards.at_goal, 0, 1000);
+    c.rewards.route = a.flag("--reward-route");
     c.checkpoint_every = a.integer("--checkpoint-every", c.checkpoint_every, 1);
     c.threads = (int)a.integer("--threads", 2, 1, 256);
     c.seed = (uint64_t)a.integer("--seed", 0, 0);
