@@ -169,9 +169,9 @@ maps-eval: $(BUILD)/madbp
 # only), then one model on one thread (1.5-10 min each on the 2-core machine), sampling in 5
 # steps. Steps per cell: the best of 1000, 2000, ..., 20000 on tuning seeds 1000-1099
 # (docs/experiments.md "MADiff checkpoints"). On the barrier MADiff observes the route goal, as
-# MAPPO there does.
+# MAPPO there does, and its steps are the best of 2000, 4000, ..., 20000 ("MADiff sees the route").
 MADIFF_CELLS := empty:2:17000 empty:4:20000 empty:6:20000 obstacles:2:19000 obstacles:3:19000 obstacles:4:14000 \
-                barrier:2:17000 barrier:3:16000 barrier:4:13000
+                barrier:2:18000 barrier:3:20000 barrier:4:18000
 madiff-models: $(BUILD)/madbp
 	@mkdir -p models/madiff
 	@set -e; for cell in $(MADIFF_CELLS); do IFS=: read map n steps <<< "$$cell"; \

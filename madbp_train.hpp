@@ -23,7 +23,10 @@
 // Configuration macros: none beyond madbp.hpp's.
 //
 // Changelog
-//   0.4  mappo_reward: one function for the MAPPO reward terms (the tool's --reward-* flags).
+//   0.4  mappo_reward: one function for the MAPPO reward terms (the tool's --reward-* flags);
+//        it takes the shaping distance before and after the step (straight or RouteDistance).
+//        MappoObservation (lidar rays and range, the goal or the route goal) travels in MAPPO
+//        and MADiff files; kMappoObsLayout is MappoObservation{}.layout().
 //   0.3  ModelConfig's velocity and priority contexts removed: DemoRoutes::first is gone.
 //   0.2  TrainState: one resumable scaffold, with run identity, for train, MAPPO and MADiff.
 //        Curve records (the tool draws the charts); ProgressFn; grad_clip names.
@@ -45,8 +48,8 @@
 //     content_hash, TrainState (identity, resume, atomic state files)                      [11, 12]
 //   7 training: TrainReport, curriculum_agents, train_identity, train                       [7]
 //   7b DAgger: expert_label, dagger_rollouts, DaggerConfig, DaggerRound, dagger (issue 12)
-//   8 MAPPO: observations, MappoNet, PPO loss, MappoRewards, mappo_reward, MappoConfig,
-//     train_mappo, MappoPolicy                                                          [3.3]
+//   8 MAPPO: observations (MappoObservation, mappo_observe), MappoNet, PPO loss, MappoRewards,
+//     RouteDistance, mappo_reward, MappoConfig, train_mappo, MappoPolicy                  [3.3]
 //   9 MADiff: MadiffConfig, InverseDynamics, MadiffModel, data, loss, train_madiff,
 //     MadiffPolicy                                                                          [3.4]
 
