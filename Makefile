@@ -142,7 +142,8 @@ fuzz: fuzz-build
 MAPPO_CELLS := empty:1:100 empty:2:200 empty:3:250 empty:4:300 empty:6:400 empty:8:500 \
                obstacles:2:500 obstacles:3:500 obstacles:4:500 barrier:2:500 barrier:3:500 barrier:4:600
 MAPPO_OBSTACLE_FLAGS := --hidden 256 --reward-at-goal 0.2
-MAPPO_BARRIER_FLAGS := --route-goal 1.5 --reward-route
+BARRIER_ROUTE_GOAL := 1.5
+MAPPO_BARRIER_FLAGS := --route-goal $(BARRIER_ROUTE_GOAL) --reward-route
 mappo-models: $(BUILD)/madbp
 	@mkdir -p models/mappo
 	@set -e; for cell in $(MAPPO_CELLS); do IFS=: read map n it <<< "$$cell"; \
@@ -175,7 +176,7 @@ MADIFF_CELLS := empty:2:17000 empty:4:20000 empty:6:20000 obstacles:2:19000 obst
 madiff-models: $(BUILD)/madbp
 	@mkdir -p models/madiff
 	@set -e; for cell in $(MADIFF_CELLS); do IFS=: read map n steps <<< "$$cell"; \
-	  case $$map in barrier) extra="--route-goal 1.5";; *) extra="";; esac; \
+	  case $$map in barrier) extra="--route-goal $(BARRIER_ROUTE_GOAL)";; *) extra="";; esac; \
 	  $(BUILD)/madbp collect --demonstrator mappo --model "models/mappo/$$map-{n}.safetensors" --maps $$map \
 	    --n-train-min $$n --n-train-max $$n --episodes 300 --seed 0 --threads 1 --out $(BUILD)/demos-madiff-$$map-$$n.bin; \
 	  $(BUILD)/madbp madiff --map $$map --agents $$n --steps $$steps --sample-steps 5 --threads 1 --seed 0 $$extra \

@@ -26,7 +26,7 @@
 //   0.4  mappo_reward: one function for the MAPPO reward terms (the tool's --reward-* flags);
 //        it takes the shaping distance before and after the step (straight or RouteDistance).
 //        MappoObservation (lidar rays and range, the goal or the route goal) travels in MAPPO
-//        and MADiff files; kMappoObsLayout is MappoObservation{}.layout().
+//        and MADiff files; the constant kMappoObsLayout is gone (MappoObservation{}.layout()).
 //   0.3  ModelConfig's velocity and priority contexts removed: DemoRoutes::first is gone.
 //   0.2  TrainState: one resumable scaffold, with run identity, for train, MAPPO and MADiff.
 //        Curve records (the tool draws the charts); ProgressFn; grad_clip names.
@@ -1499,29 +1499,39 @@ struct MappoObservation {
         return std::string("pos2,vel2,") + (route_goal > 0 ? "pos-routegoal2@" + number_text(route_goal) : std::string("pos-goal2")) +
                ",lidar" + std::to_string(rays) + "@" + number_text(range) + "(range-distance)";
     }
+    // Lengths must survive the layout string (6 significant digits): a file then gives back the
+    // observation it was trained on, and a resumed run's identity tells two runs apart.
     void check(const std::string& owner) const {
+        auto exact = [](double v) { return std::strtod(number_text(v).c_str(), nullptr) == v; };
         if (rays < 1 || rays > 360) throw std::invalid_argument(owner + ".rays: must be in [1, 360] (got " + std::to_string(rays) + ")");
-        if (!(range > 0 && range <= 10))
-            throw std::invalid_argument(owner + ".range: must be in (0, 10] world units (got " + number_text(range) + ")");
-        if (!(route_goal >= 0 && route_goal <= 10))
-            throw std::invalid_argument(owner + ".route_goal: must be 0 (off) or in (0, 10] world units (got " + number_text(route_goal) + ")");
+        if (!(range > 0 && range <= 10) || !exact(range))
+            throw std::invalid_argument(owner + ".range: must be in (0, 10] world units, at most 6 significant digits (got " +
+                                        number_text(range) + ")");
+        if (!(route_goal >= 0 && route_goal <= 10) || !exact(route_goal))
+            throw std::invalid_argument(owner + ".route_goal: must be 0 (off) or in (0, 10] world units, at most 6 significant digits (got " +
+                                        number_text(route_goal) + ")");
     }
-    // The observation a layout string names; throws std::runtime_error naming `source` for any
-    // other string.
-    static MappoObservation from_layout(const std::string& layout, const std::string& source) {
+    // The observation the layout string `layout` (metadata entry `key` of file `source`) names;
+    // std::runtime_error naming both for any other string.
+    static MappoObservation from_layout(const std::string& layout, const std::string& source, const std::string& key) {
+        auto refuse = [&](const std::string& why) {
+            return std::runtime_error(source + ": __metadata__['" + key + "'] = '" + layout.substr(0, 80) + "' is not an observation layout this build reads (" +
+                                      why + "; e.g. '" + MappoObservation{}.layout() + "')");
+        };
         MappoObservation o;
-        o.rays = 0;
         const char* rest = layout.c_str();
         int used = 0;
         if (std::sscanf(rest, "pos2,vel2,pos-routegoal2@%lf,%n", &o.route_goal, &used) == 1 && used > 0) rest += used;
         else if (layout.compare(0, 20, "pos2,vel2,pos-goal2,") == 0) rest += 20;
-        else rest = "";
-        std::sscanf(rest, "lidar%d@%lf", &o.rays, &o.range);
-        if (o.rays < 1 || o.rays > 360 || !(o.range > 0 && o.range <= 10) || !(o.route_goal >= 0 && o.route_goal <= 10) ||
-            o.layout() != layout)
-            throw std::runtime_error(source + ": observation layout '" + layout + "' is not one this build reads ('" +
-                                     MappoObservation{}.layout() + "' with any ray count in [1, 360] and range in (0, 10], and " +
-                                     "pos-goal2 or pos-routegoal2@D, D in (0, 10])");
+        else throw refuse("it starts with neither pos2,vel2,pos-goal2 nor pos2,vel2,pos-routegoal2@D");
+        if (std::strncmp(rest, "lidar", 5) != 0 || std::strspn(rest + 5, "0123456789") > 3 || std::sscanf(rest, "lidar%d@%lf", &o.rays, &o.range) != 2)
+            throw refuse("no lidarR@range after the goal");
+        try {
+            o.check("obs");
+        } catch (const std::invalid_argument& e) {
+            throw refuse(e.what());
+        }
+        if (o.layout() != layout) throw refuse("not written as this build writes it");
         return o;
     }
 };
@@ -1831,7 +1841,8 @@ inline PpoTerms ppo_loss(MappoNet& net, const PpoBatch& b, const PpoCoefficients
 // With `route` set the shaping distance is the length of the shortest way around the map
 // (RouteDistance) rather than the straight one: on the barrier the straight distance rewards
 // pressing against the wall in front of the goal, a trap the policy must unlearn, while the way
-// through the gap rewards every step toward it (a potential, so the best policy is unchanged).
+// through the gap rewards every step toward it. (Either is a difference of potentials, as VMAS
+// shapes, undiscounted: close to, not exactly, a shaping that leaves the best policy unchanged.)
 struct MappoRewards {
     float shaping = 1.0f, success_bonus = 5.0f, collision = -0.1f, time = -0.01f;
     float at_goal = 0.0f;  // per step while within the goal tolerance
@@ -1844,7 +1855,9 @@ struct MappoRewards {
 // the straight distance, the octile metric); at p, the least of (cell's distance + straight
 // distance from p to the cell's centre) over p's 3 x 3 cells, so it changes smoothly as a robot
 // moves. Where none of those cells is reachable (inside an obstacle), the straight distance.
-// Memory: 4 bytes a cell (3600 cells in the standard world).
+// Not RouteGuide's wavefront: that counts grid steps, with an extra cost for narrow cells, to
+// choose a route; shaping needs the route's length. Memory: 8 bytes a cell (its ClearanceGrid
+// and the distances; 3600 cells in the standard world).
 class RouteDistance {
 public:
     RouteDistance() = default;
@@ -1878,6 +1891,7 @@ public:
             }
         return best < kFar ? best : norm(p - goal_);
     }
+    Vec2 goal() const { return goal_; }
 
 private:
     static constexpr float kFar = std::numeric_limits<float>::infinity();
@@ -1993,7 +2007,7 @@ inline MappoNet mappo_from(const SafeTensors& st) {
         throw std::runtime_error(st.source + ": not a MAPPO policy (__metadata__['format'] is '" +
                                  (it == st.metadata.end() ? std::string("missing") : it->second) + "', expected 'madbp-mappo')");
     MappoNetConfig c;
-    c.obs = MappoObservation::from_layout(st.meta("mappo.obs"), st.source);
+    c.obs = MappoObservation::from_layout(st.meta("mappo.obs"), st.source, "mappo.obs");
     c.agents = meta_int(st, "mappo.agents", 1, 64);
     c.hidden = meta_int(st, "mappo.hidden", 1, 4096);
     const ParamBudget budget(st.values(), st.source);  // the declared net may need no more values than the file holds
@@ -2081,7 +2095,9 @@ inline MappoReport train_mappo(const MappoConfig& c, MappoNet* result = nullptr)
     };
     auto shaping_distance = [&](int w, int i) {
         const Agent& ag = batch.worlds[w].agents()[i];
-        return c.rewards.route ? routes[w][i](ag.pos) : norm(ag.pos - ag.goal);
+        if (!c.rewards.route) return norm(ag.pos - ag.goal);
+        MADBP_ASSERT(routes[w][i].goal() == ag.goal);  // made for this world
+        return routes[w][i](ag.pos);
     };
     auto observe_world = [&](int w) {
         mappo_observe_all(batch.worlds[w], step_obs, (long)w * n, c.obs, &guides[w]);
@@ -2130,7 +2146,10 @@ inline MappoReport train_mappo(const MappoConfig& c, MappoNet* result = nullptr)
                 }
                 if (world.done()) {
                     if (!first_done[w]) first_done[w] = 1, first_success[w] = success;
-                    if (t + 1 < T) world = fresh_world(reseed[w]), make_routes(w);
+                    if (t + 1 < T) {
+                        world = fresh_world(reseed[w]);
+                        make_routes(w);
+                    }
                 }
                 observe_world(w);
             }
@@ -2360,7 +2379,7 @@ struct MadiffConfig {
         if (!std::isfinite(return_min) || !std::isfinite(return_max) || !(return_max > return_min))
             bad("return_min/return_max", "need finite values with max > min");
         if (!(return_target >= -10 && return_target <= 10)) bad("return_target", "must be in [-10, 10]");
-        if (!(route_goal >= 0 && route_goal <= 10)) bad("route_goal", "must be 0 (off) or in (0, 10]");
+        observation().check("madiff config obs");
     }
     std::map<std::string, std::string> to_metadata() const {
         auto f = [](double v) { char b[32]; std::snprintf(b, sizeof b, "%.9g", v); return std::string(b); };
@@ -2384,7 +2403,7 @@ struct MadiffConfig {
         if (st.meta("madiff.prediction") != "x0" || st.meta("madiff.normalizer") != "limits")
             throw std::runtime_error(st.source + ": prediction '" + st.meta("madiff.prediction") + "' / normalizer '" +
                                      st.meta("madiff.normalizer") + "' are not this build's 'x0' / 'limits'");
-        const MappoObservation ob = MappoObservation::from_layout(st.meta("madiff.obs"), st.source);
+        const MappoObservation ob = MappoObservation::from_layout(st.meta("madiff.obs"), st.source, "madiff.obs");
         if (ob.rays != kLidarRays || ob.range != kLidarRange)
             throw std::runtime_error(st.source + ": observation layout '" + st.meta("madiff.obs") + "': MADiff observes with the default lidar (" +
                                      std::to_string(kLidarRays) + " rays of " + number_text(kLidarRange) + ")");
@@ -2661,8 +2680,10 @@ inline Mat madiff_episode_observations(const Demonstration& d, const MappoObserv
 }
 
 // Selects the episodes of `demos` on `map` with exactly n agents and at least H frames, observed
-// as `ob` (default: MAPPO's default observation).
-inline MadiffData madiff_data(const DemoSet& demos, const std::string& map, int n, int H, const MappoObservation& ob = {}) {
+// as MADiff does (MadiffConfig::observation: the default lidar; the goal, or the route goal
+// `route_goal` ahead when > 0).
+inline MadiffData madiff_data(const DemoSet& demos, const std::string& map, int n, int H, double route_goal = 0) {
+    const MappoObservation ob{kLidarRays, kLidarRange, route_goal};
     MadiffData out;
     out.n = n, out.H = H;
     for (size_t e = 0; e < demos.episodes.size(); ++e) {
@@ -2836,7 +2857,7 @@ inline MadiffReport train_madiff(const DemoSet& demos, MadiffConfig mc, const Ma
     }
     mc.validate();
     set_num_threads(std::max(1, tc.threads));
-    MadiffData data = madiff_data(demos, mc.map, mc.agents, mc.horizon, mc.observation());
+    MadiffData data = madiff_data(demos, mc.map, mc.agents, mc.horizon, mc.route_goal);
     std::vector<float> sorted = data.window_return;
     std::sort(sorted.begin(), sorted.end());
     mc.return_min = sorted.front();

@@ -262,7 +262,19 @@ TEST_CASE("mappo: the route distance and the route goal go around the barrier, t
     CHECK((ahead.x - p.x) * (gap_x - p.x) > 0);  // toward the gap, not straight at the goal
     CHECK_THROWS_WITH_AS(mappo_observe(world, 0, obs, ob), doctest::Contains("needs a RouteGuide"), std::invalid_argument);
     CHECK(ob.layout() == "pos2,vel2,pos-routegoal2@1.5,lidar12@0.35(range-distance)");
-    CHECK(MappoObservation::from_layout(ob.layout(), "f").route_goal == 1.5);
+    CHECK(MappoObservation::from_layout(ob.layout(), "f", "mappo.obs").route_goal == 1.5);
+    // The shipped files' layout reads back as the defaults; near misses are refused by name.
+    const MappoObservation old = MappoObservation::from_layout("pos2,vel2,pos-goal2,lidar12@0.35(range-distance)", "f", "mappo.obs");
+    CHECK((old.rays == kLidarRays && old.range == kLidarRange && old.route_goal == 0));
+    for (const char* bad : {"pos2,vel2,pos-routegoal2@1.50,lidar12@0.35(range-distance)", "pos2,vel2,pos-routegoal2@0,lidar12@0.35(range-distance)",
+                            "pos2,vel2,pos-routegoal2@nan,lidar12@0.35(range-distance)", "pos2,vel2,pos-routegoal2@11,lidar12@0.35(range-distance)",
+                            "pos2,vel2,pos-goal2,lidar12@0.35(range-distance)x", "pos2,vel2,pos-goal2,lidar99999999999@0.35(range-distance)",
+                            "pos2,vel2,pos-goal2,lidar12@0.35"})
+        CHECK_THROWS_WITH_AS(MappoObservation::from_layout(bad, "f", "mappo.obs"), doctest::Contains("f: __metadata__['mappo.obs']"),
+                             std::runtime_error);
+    // A length the layout's 6 digits would round is refused: the file must give back what trained.
+    CHECK_THROWS_WITH_AS((MappoObservation{12, 0.1234567}.check("obs")), doctest::Contains("obs.range"), std::invalid_argument);
+    CHECK_THROWS_WITH_AS((MappoObservation{12, 0.35, 1.2345678}.check("obs")), doctest::Contains("obs.route_goal"), std::invalid_argument);
 }
 
 TEST_CASE("mappo: a few seconds of one-agent training on the empty map learn to reach the goal [slow]") {
@@ -336,6 +348,13 @@ TEST_CASE("mappo: checkpoints round-trip; resume is exact; runs are deterministi
     MappoNet parallel(MappoNetConfig{});
     train_mappo(two, &parallel);
     CHECK(parallel.params->value == full.params->value);
+    // The same with VMAS's observation and straight shaping (the empty and obstacle policies).
+    MappoConfig plain = tiny_config("obstacles", 2, 2);
+    MappoNet one_thread(MappoNetConfig{}), two_threads(MappoNetConfig{});
+    train_mappo(plain, &one_thread);
+    plain.threads = 2;
+    train_mappo(plain, &two_threads);
+    CHECK(one_thread.params->value == two_threads.params->value);
     set_num_threads(1);
     remove_outputs(out);
     remove_outputs(out2);
