@@ -1487,9 +1487,10 @@ namespace madbp {
 constexpr int kLidarRays = 12;
 constexpr double kLidarRange = 0.35;
 constexpr int kMappoObs = 6 + kLidarRays;  // observation size with the default lidar (MADiff's)
+constexpr int kMaxLidarRays = 360;
 
 struct MappoObservation {
-    int rays = kLidarRays;       // lidar rays, in [1, 360]
+    int rays = kLidarRays;       // lidar rays, in [1, kMaxLidarRays]
     double range = kLidarRange;  // lidar range, world units, in (0, 10]
     double route_goal = 0;       // D: 0 the goal itself, else the route goal D ahead, in (0, 10]
     int size() const { return 6 + rays; }
@@ -1503,7 +1504,8 @@ struct MappoObservation {
     // observation it was trained on, and a resumed run's identity tells two runs apart.
     void check(const std::string& owner) const {
         auto exact = [](double v) { return std::strtod(number_text(v).c_str(), nullptr) == v; };
-        if (rays < 1 || rays > 360) throw std::invalid_argument(owner + ".rays: must be in [1, 360] (got " + std::to_string(rays) + ")");
+        if (rays < 1 || rays > kMaxLidarRays)
+            throw std::invalid_argument(owner + ".rays: must be in [1, " + std::to_string(kMaxLidarRays) + "] (got " + std::to_string(rays) + ")");
         if (!(range > 0 && range <= 10) || !exact(range))
             throw std::invalid_argument(owner + ".range: must be in (0, 10] world units, at most 6 significant digits (got " +
                                         number_text(range) + ")");
@@ -1616,10 +1618,10 @@ inline float mappo_obs_scale(int feature, const MappoObservation& ob = {}) {
 // Scaled observations of every agent of `world`, one column each, into columns
 // [col, col + n) of `obs` (ob.size() rows); `guide` as for mappo_observe.
 inline void mappo_observe_all(const World& world, Mat& obs, long col, const MappoObservation& ob = {}, RouteGuide* guide = nullptr) {
-    MADBP_ASSERT(obs.rows() == ob.size());
-    std::vector<float> raw(ob.size());
+    MADBP_ASSERT(obs.rows() == ob.size() && ob.rays <= kMaxLidarRays);
+    float raw[6 + kMaxLidarRays];  // on the stack: this runs every step of every world
     for (int i = 0; i < world.size(); ++i) {
-        mappo_observe(world, i, raw.data(), ob, guide);
+        mappo_observe(world, i, raw, ob, guide);
         for (int f = 0; f < ob.size(); ++f) obs(f, col + i) = raw[f] * mappo_obs_scale(f, ob);
     }
 }
@@ -2110,7 +2112,10 @@ inline MappoReport train_mappo(const MappoConfig& c, MappoNet* result = nullptr)
         std::vector<uint8_t> first_done(W, 0), first_success(W, 0);
         std::vector<double> first_return(W, 0);
 #pragma omp parallel for schedule(static)
-        for (int w = 0; w < W; ++w) make_routes(w), observe_world(w);
+        for (int w = 0; w < W; ++w) {
+            make_routes(w);
+            observe_world(w);
+        }
         for (int t = 0; t < T; ++t) {
             const long col = t * per_step;
             net.actor.forward(step_obs, mean);
@@ -2338,6 +2343,9 @@ constexpr const char* kMadiffFormat = "madiff";
 // |norm.lo|, |norm.hi| of a MADiff checkpoint: its observations are scaled to about +-1.7.
 constexpr double kMaxMadiffLimit = 1e3;
 
+// MADiff's observation: MAPPO's default lidar, the goal or (route_goal > 0) the route goal.
+inline MappoObservation madiff_observation(double route_goal) { return {kLidarRays, kLidarRange, route_goal}; }
+
 struct MadiffConfig {
     std::string map = "empty";           // map the model was trained on (recorded, not enforced)
     int agents = 2;                      // n, the fixed team size, in [1, 64]
@@ -2357,8 +2365,7 @@ struct MadiffConfig {
     float return_min = 0, return_max = 1, return_target = 0.9f;
 
     int levels() const { return (int)channels.size(); }
-    // The observation: MAPPO's default lidar, the goal or the route goal.
-    MappoObservation observation() const { return {kLidarRays, kLidarRange, route_goal}; }
+    MappoObservation observation() const { return madiff_observation(route_goal); }
     void validate() const {
         auto bad = [](const std::string& f, const std::string& why) { throw std::invalid_argument("madiff config " + f + ": " + why); };
         if (agents < 1 || agents > 64) bad("agents", std::to_string(agents) + " must be in [1, 64]");
@@ -2404,7 +2411,7 @@ struct MadiffConfig {
             throw std::runtime_error(st.source + ": prediction '" + st.meta("madiff.prediction") + "' / normalizer '" +
                                      st.meta("madiff.normalizer") + "' are not this build's 'x0' / 'limits'");
         const MappoObservation ob = MappoObservation::from_layout(st.meta("madiff.obs"), st.source, "madiff.obs");
-        if (ob.rays != kLidarRays || ob.range != kLidarRange)
+        if (ob.layout() != madiff_observation(ob.route_goal).layout())
             throw std::runtime_error(st.source + ": observation layout '" + st.meta("madiff.obs") + "': MADiff observes with the default lidar (" +
                                      std::to_string(kLidarRays) + " rays of " + number_text(kLidarRange) + ")");
         auto real = [&](const std::string& k) {
@@ -2683,7 +2690,7 @@ inline Mat madiff_episode_observations(const Demonstration& d, const MappoObserv
 // as MADiff does (MadiffConfig::observation: the default lidar; the goal, or the route goal
 // `route_goal` ahead when > 0).
 inline MadiffData madiff_data(const DemoSet& demos, const std::string& map, int n, int H, double route_goal = 0) {
-    const MappoObservation ob{kLidarRays, kLidarRange, route_goal};
+    const MappoObservation ob = madiff_observation(route_goal);
     MadiffData out;
     out.n = n, out.H = H;
     for (size_t e = 0; e < demos.episodes.size(); ++e) {

@@ -151,7 +151,7 @@ inline int cmd_mappo(Args& a) {
     const double budget = a.real("--time-budget", 0, 1e-3, 1e9);  // 0 (not given): none; --time-budget 0 is an error
     c.worlds = (int)a.integer("--worlds", c.worlds, 1, 100000);
     c.hidden = (int)a.integer("--hidden", c.hidden, 1, 4096);
-    c.obs.rays = (int)a.integer("--lidar-rays", c.obs.rays, 1, 360);
+    c.obs.rays = (int)a.integer("--lidar-rays", c.obs.rays, 1, madbp::kMaxLidarRays);
     c.obs.range = a.real("--lidar-range", c.obs.range, 1e-3, 10);
     c.obs.route_goal = a.real("--route-goal", c.obs.route_goal, 0, 10);
     c.epochs = (int)a.integer("--epochs", c.epochs, 1, 1000);
