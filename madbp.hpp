@@ -85,7 +85,8 @@
 //     guidance, best-of-k, keep-right, end bend, warm start)                            [6]
 //   7 planner settings: TrafficConfig, PlannerConfig (tuned(), paper(), validate, set),
 //     PlannerSetting, planner_settings (the table), kSmallPlanWindows                 [8]
-//   8 traffic conventions: PassageControl (one-lane passages: take turns, go around, queue) [8]
+//   8 traffic conventions: PassageControl (one-lane passages: take turns, go around, queue),
+//     passage_traffic (the guided expert takes the same turns)                          [8]
 //   9 planner: DiffusionPlanner (plan, neighbourhoods, plan_robot), make_follower,
 //     DecentralisedTeam                                                                [8]
 //
@@ -108,6 +109,7 @@
 //        or both queue at the mouth it comes in by; a robot inside a long passage claims the mouth behind it;
 //        waiting robots are routed to their waiting points (issue 46's maze).
 //        traffic.queue_in_order: a robot behind one queueing at a passage's mouth queues too.
+//        passage_traffic(): the guided expert takes the planner's turns in one-lane passages.
 //        Queue places follow the free space where the line out of a mouth meets a wall; of two
 //        robots coming in by one mouth to goals in a passage, the one going deeper goes first.
 //   0.3  PlannerConfig: every planner setting in one struct, its defaults written once.
@@ -4458,6 +4460,40 @@ private:
         map_ = map;
     }
 };
+
+// The guided expert's traffic rule with the planner's conventions (ExpertTraffic, madbp_sim.hpp
+// Section 12): before each of its plans, PassageControl with `traffic` decides who holds each
+// one-lane passage, and the expert plans a robot that waits to its queue place and one that goes
+// around out of the passage's cells, both after the others. Without it, two robots meeting
+// head-on in a maze's one-cell aisle, or one parked at its goal in another's way, hold each other
+// for good (issue 46). Use: GuidedExpert expert(map, ExpertParams{}, passage_traffic());
+// traffic.take_turns false: no rule (each robot heads for its goal).
+inline ExpertTraffic passage_traffic(const TrafficConfig& traffic = PlannerConfig{}.traffic) {
+    if (!traffic.take_turns) return nullptr;
+    struct State {
+        PassageControl control;
+        std::vector<Vec2> pos, goal, point;
+        std::vector<char> at_goal, turn;
+        std::vector<int> ids;
+    };
+    auto state = std::make_shared<State>();
+    state->control.params = traffic;
+    return [state](const World& world, RouteGuide& guide, std::vector<ExpertHeading>& heading) {
+        State& s = *state;
+        const auto& ag = world.agents();
+        const int n = (int)ag.size();
+        s.pos.resize(n), s.goal.resize(n), s.at_goal.resize(n), s.ids.resize(n);
+        for (int i = 0; i < n; ++i) {
+            s.pos[i] = ag[i].pos, s.goal[i] = ag[i].goal, s.ids[i] = ag[i].id;
+            s.at_goal[i] = world.at_goal(ag[i]);
+        }
+        if (s.control.arbitrate(guide, world.map(), n, s.pos.data(), s.goal.data(), s.at_goal.data(), s.turn, s.point, s.ids.data()) == 0) return;
+        for (int i = 0; i < n; ++i) {
+            if (s.turn[i] == PassageControl::kWait) heading[i] = ExpertHeading{s.point[i], {}, true};
+            if (s.turn[i] == PassageControl::kGoAround) heading[i] = ExpertHeading{s.goal[i], s.control.closed_to(i), true};
+        }
+    };
+}
 
 // =============================================================================================
 // Section 9. Moving-window planner (SPEC 8): DiffusionPlanner, make_follower, DecentralisedTeam

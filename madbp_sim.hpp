@@ -35,6 +35,9 @@
 //        to the map (was SPEC's 0.01, which froze robots in gaps their routes pass).
 //        FollowerConfig::unjam 15 (paper preset and the straight line: 0): a robot the filter
 //        holds with no progress backs out to its most open side (crowds among obstacles).
+//        GuidedExpert takes an ExpertTraffic rule (ExpertHeading: a robot's target, closed cells,
+//        whether it gives way); madbp.hpp's passage_traffic() is the planner's one-lane turns.
+//        RouteGuide::steps_to takes ClosedCells.
 //   0.3  PassageControl and its parameters move to madbp.hpp (the planner's traffic conventions).
 //        ClearanceGrid moves to Section 2; ReachGrid is gone (detail::all_reachable on its layout).
 //        movingai_scene / load_movingai_scene: MovingAI MAPF benchmark maps and scenarios as scenes.
@@ -191,7 +194,8 @@ inline std::string number_text(double v) {
 //  11 episodes and evaluation: EpisodeLog, run_episode, default_max_steps, evaluate [9, 10]
 //  12 guided expert: ClosedCells, RouteClearance, wavefront, RouteGoal, RouteField (whole or band
 //     wavefronts), RouteGuide (route subgoals),
-//     ExpertParams, GuidedExpert (one-lane passages: the planner's, madbp.hpp),
+//     ExpertHeading, ExpertTraffic, ExpertParams, GuidedExpert (one-lane passages: the
+//     planner's, madbp.hpp's passage_traffic),
 //     scene_step_limit (a scene's default step limit follows its routes)     [3.6]
 //  13 SVG: render_svg, write_text_file                                           [2]
 
@@ -2912,9 +2916,13 @@ public:
     }
     const ClearanceGrid& grid() const { return grid_; }
     const ClearanceGrid& grid(const WorldMap& map) { set_map(map); return grid_; }  // the grid made for `map`
-    // The wavefront (route cost per cell, -1: unreachable) of goal's cell on `map`, over the whole
-    // grid whatever `band`; valid until the next call that may make a field.
-    const RouteField& steps_to(const WorldMap& map, Vec2 goal) { set_map(map); return field(grid_.index(goal), {}, -1, goal, false); }
+    // The wavefront (route cost per cell, -1: unreachable) of goal's cell on `map`, keeping out of
+    // `closed`, over the whole grid whatever `band`; valid until the next call that may make a field.
+    const RouteField& steps_to(const WorldMap& map, Vec2 goal, ClosedCells closed = {}) {
+        set_map(map);
+        check(closed);
+        return field(grid_.index(goal), closed, -1, goal, false);
+    }
     // Wavefront steps from p's cell to goal's, the guided expert's priority key (its plan cells
     // and clearance; a step into a narrow cell counts 1 + narrow_cost); kRouteUnreachable when no
     // route is known.
@@ -3230,9 +3238,22 @@ private:
 //     reached states of one search (at most 8 max_expansions + 1, detail::SpaceTimeStates)
 //     and the reservations (robots x steps x (hold + 2) centres, detail::Reservations).
 // Priorities: agents still travelling before agents that have arrived (those step aside and
-// come back), then the longer route cost at the start first, then the id. The plan
-// is tracked with the SPEC 3.2 tracker and made safe by the safety filter, in which a
-// higher-priority agent weighs more (deviates less; lower ones make way).
+// come back), then the longer route cost at the start first, then the id; robots that give way
+// (ExpertHeading::gives_way) after all others. The plan is tracked with the SPEC 3.2 tracker and
+// made safe by the safety filter, in which a higher-priority agent weighs more (deviates less;
+// lower ones make way).
+// Traffic: soft reservations do not settle two robots meeting head-on in a one-lane aisle (each
+// plan sends both in, the filter holds them nose to nose). An ExpertTraffic rule may, before each
+// plan, send a robot elsewhere than its goal: madbp.hpp's passage_traffic() gives the expert the
+// planner's turns through one-lane passages (PassageControl). Without one, each heads for its goal.
+struct ExpertHeading {
+    Vec2 target;            // where the robot is planned to go this plan (its goal unless a rule says otherwise)
+    ClosedCells closed;     // grid cells its route keeps out of (none by default)
+    bool gives_way = false; // it waits or goes around for others: planned after every robot that does not
+};
+// heading[i] comes filled for world.agents()[i] (its goal, nothing closed); `guide` is the expert's.
+using ExpertTraffic = std::function<void(const World& world, RouteGuide& guide, std::vector<ExpertHeading>& heading)>;
+
 struct ExpertParams {
     double cell = 0.036;          // planning cell, world units (distance per step at cruise)
     double inflate = 0.13;        // clearance preferred from obstacles and walls (radius + 0.03), world units
@@ -3253,7 +3274,8 @@ struct ExpertParams {
 
 class GuidedExpert : public Policy {
 public:
-    explicit GuidedExpert(const WorldMap& map, ExpertParams p = ExpertParams{}) : prm_(p) {
+    explicit GuidedExpert(const WorldMap& map, ExpertParams p = ExpertParams{}, ExpertTraffic traffic = nullptr)
+        : prm_(p), traffic_(std::move(traffic)) {
         if (prm_.replan_every < 1) throw std::invalid_argument("ExpertParams.replan_every: must be >= 1");
         if (prm_.extra_horizon < 0 || prm_.extra_horizon > kExpertMaxHorizon)
             throw std::invalid_argument("ExpertParams.extra_horizon: must be in [0, kExpertMaxHorizon = " + std::to_string(kExpertMaxHorizon) + "]");
@@ -3300,6 +3322,8 @@ public:
 
 private:
     ExpertParams prm_;
+    ExpertTraffic traffic_;                   // where robots head when not their goals (none: their goals)
+    std::vector<ExpertHeading> heading_;      // per agent, this plan
     RouteGuide guide_;                        // grid and wavefronts (shared representation, Section 12)
     std::map<int, int> initial_steps_;        // agent id -> route cost from its start
     Plan plan_;
@@ -3349,6 +3373,12 @@ private:
             if (!initial_steps_.count(ag[i].id)) initial_steps_[ag[i].id] = route_cost(world.map(), ag[i].pos, ag[i].goal);
         std::vector<int> order;
         priority_order(world, [&](const Agent& a) { return (double)initial_steps_[a.id]; }, order);
+        heading_.resize(n);
+        for (int i = 0; i < n; ++i) heading_[i] = ExpertHeading{ag[i].goal, {}, false};
+        if (traffic_) {
+            traffic_(world, guide_, heading_);
+            std::stable_partition(order.begin(), order.end(), [&](int i) { return !heading_[i].gives_way; });
+        }
         reserved_.reset(grid.n, grid.cell, 2 * r + prm_.buffer);
         plan_ = Plan{};
         rank_.assign(n, 0);
@@ -3359,7 +3389,7 @@ private:
         std::vector<int> step_cells;
         for (int rank = 0; rank < n; ++rank) {
             int i = order[rank];
-            std::vector<int> path = search(world.map(), ag[i], T);
+            std::vector<int> path = search(world.map(), ag[i].pos, heading_[i], T);
             // Reserve the path's discs at each step t: its centres from `hold` steps before to
             // one after (tracking lags the plan), each distinct centre once.
             for (int t = 1; t <= T; ++t) {
@@ -3370,12 +3400,13 @@ private:
                 }
                 for (int c : step_cells) reserved_.add(rank, t, c);
             }
-            // Waypoints: cell centres, the exact goal in the goal cell; on a coarsened grid,
+            // Waypoints: cell centres, the exact target in its cell; on a coarsened grid,
             // points along the path at 1 / stretch cells per world step.
-            int goal_cell = grid.index(ag[i].goal);
+            const Vec2 target = heading_[i].target;
+            const int target_cell = grid.index(target);
             auto point = [&](int step) {
                 int c = path[std::min(step, (int)path.size() - 1)];
-                return c == goal_cell ? ag[i].goal : grid.centre(c);
+                return c == target_cell ? target : grid.centre(c);
             };
             const Vec2 offset = ag[i].pos - point(0);
             std::vector<Vec2> w;
@@ -3399,19 +3430,21 @@ private:
         plan_t0_ = world.t();
     }
 
-    // Space-time A* for one agent against the current reservations; returns cells for
-    // t = 0 .. arrival (the agent stays at the last cell afterwards).
-    std::vector<int> search(const WorldMap& map, const Agent& a, int T) {
+    // Space-time A* for one agent at `pos` to heading.target against the current reservations,
+    // keeping out of heading.closed; returns cells for t = 0 .. arrival (the agent stays at the
+    // last cell afterwards).
+    std::vector<int> search(const WorldMap& map, Vec2 pos, const ExpertHeading& heading, int T) {
         const ClearanceGrid& grid = guide_.grid();
         const int n = grid.n;
-        const int start = grid.index(a.pos), goal = grid.index(a.goal);
+        const int start = grid.index(pos), goal = grid.index(heading.target);
+        const ClosedCells closed = heading.closed;
         const RouteClearance route = prm_.route();
         // The heuristic: the wavefront, or the Chebyshev steps when the straight way is open.
-        const RouteField* field = guide_.straight(map, a.pos, a.goal) ? nullptr : &guide_.steps_to(map, a.goal);
+        const RouteField* field = guide_.straight(map, pos, heading.target, closed) ? nullptr : &guide_.steps_to(map, heading.target, closed);
         auto h = [&](int c) { return (float)std::max(field ? (*field)[c] : -1, chebyshev(n, c, goal)); };
         // A start pushed into the clearance band may move through cells no worse than its own.
         const float floor_clear = std::min((float)route.min, grid.clear[start]) - 1e-6f;
-        auto allowed = [&](int c) { return grid.clear[c] >= floor_clear || c == goal; };
+        auto allowed = [&](int c) { return (grid.clear[c] >= floor_clear || c == goal) && (c == start || !closed.closes(c)); };
         // Charge for staying at the goal from step t on while others pass through it.
         std::vector<float> stay(T + 2, 0.f);
         for (int t = T; t >= 1; --t) {

@@ -627,3 +627,27 @@ TEST_CASE("planner: a robot going around a corridor is given a subgoal beside it
     CHECK(std::abs(told.x) > 0.2);         // off the corridor's axis: around it
     CHECK(told.y < 0.9);                   // and on the way down
 }
+
+TEST_CASE("expert: with passage_traffic, robots meeting head-on inside a long one-lane corridor take turns") {
+    // Three robots in a 0.3-wide corridor 5 long, one going down and two coming up: each plan of
+    // the plain expert sends them all on (soft reservations), and the filter holds them nose to
+    // nose until the step limit (issue 46's maze: its border aisles).
+    auto run = [](ExpertTraffic traffic) {
+        WorldConfig wc;
+        wc.max_steps = 600;
+        World w(corridor_map(0.3, 2.5, false, 0, 3.0), wc);
+        w.add_agent({0, 1.5}, {0.5, -2.8});
+        w.add_agent({0, -0.5}, {-0.5, 2.8});
+        w.add_agent({0, -1.0}, {0.5, 2.8});
+        GuidedExpert expert(w.map(), ExpertParams{}, std::move(traffic));
+        return run_episode(w, expert);
+    };
+    const EpisodeResult turns = run(passage_traffic());
+    CHECK(turns.success);
+    CHECK(turns.collisions() == 0);
+    CHECK(turns.steps < 400);
+    CHECK_FALSE(run(nullptr).success);  // the scene needs the rule
+    TrafficConfig off;
+    off.take_turns = false;
+    CHECK(passage_traffic(off) == nullptr);  // no rule: each robot heads for its goal
+}

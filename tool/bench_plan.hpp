@@ -154,7 +154,7 @@ inline int bench_plan(Args& a) {
         const int drawn = planner.last_plan_candidates();  // candidates per scene (small plans draw more)
         const double ms = 1000 * secs / plans, growth = last_n > 0 && n > last_n ? std::log(ms / last_ms) / std::log((double)n / last_n) : NAN, warm_ms = 1000 * warm_secs / plans, new_ms = 1000 * new_secs / plans, rate = plan_flops(config, per_scene, first_steps) * scenes * drawn / (secs / plans) / 1e9;
         // The guided expert on the same world: mean ms per plan over `plans` / 5 plans (at least 3).
-        madbp::GuidedExpert expert(world.map());
+        madbp::GuidedExpert expert(world.map(), madbp::ExpertParams{}, madbp::passage_traffic());  // as eval's
         madbp::World ew = world;
         const int expert_plans = std::max(3, plans / 5);
         for (int i = 0; expert_row && i < expert_plans * madbp::ExpertParams{}.replan_every && !ew.done(); ++i) ew.step(expert.act(ew));

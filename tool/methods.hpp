@@ -81,7 +81,7 @@ inline std::vector<Method> methods() {
                      madbp::ExpertParams ep;
                      if (!s.filter) throw std::invalid_argument("--no-filter: the guided expert always uses its safety filter");
                      return MethodSpec{[ep](const madbp::World& w, uint64_t) {
-                         return std::make_unique<madbp::GuidedExpert>(w.map(), ep);
+                         return std::make_unique<madbp::GuidedExpert>(w.map(), ep, madbp::passage_traffic());
                      }};
                  }});
     register_nn_methods(m);
