@@ -4467,7 +4467,8 @@ private:
 // around out of the passage's cells, both after the others. Without it, two robots meeting
 // head-on in a maze's one-cell aisle, or one parked at its goal in another's way, hold each other
 // for good (issue 46). Use: GuidedExpert expert(map, ExpertParams{}, passage_traffic());
-// traffic.take_turns false: no rule (each robot heads for its goal).
+// traffic.take_turns false: no rule (each robot heads for its goal). Each call makes a rule with
+// its own state (the passages found, scratch arrays): give each expert its own.
 inline ExpertTraffic passage_traffic(const TrafficConfig& traffic = PlannerConfig{}.traffic) {
     if (!traffic.take_turns) return nullptr;
     struct State {

@@ -3261,6 +3261,7 @@ struct ExpertParams {
     int narrow_cost = 8;          // extra cost of a step into a cell closer than `inflate`, steps, [0, 1000]
     double buffer = 0.04;         // planned centres of two agents stay >= 2 r + buffer apart (the filter keeps 2 r + 0.03), world units
     double conflict_cost = 8;     // extra cost of a step inside another agent's reservation, steps
+    double give_way_buffer = 0.2; // a robot that gives way (ExpertTraffic) keeps this much more clear of planned robots, world units
     int hold = 1;                 // a planned position stays reserved from one step before to `hold` steps after, for lag
     int replan_every = 5;         // steps between plans, >= 1
     double replan_error = 0.1;    // replan early when an agent is this far from its waypoint, world units
@@ -3281,6 +3282,8 @@ public:
             throw std::invalid_argument("ExpertParams.extra_horizon: must be in [0, kExpertMaxHorizon = " + std::to_string(kExpertMaxHorizon) + "]");
         if (prm_.max_expansions < 1) throw std::invalid_argument("ExpertParams.max_expansions: must be >= 1");
         if (prm_.hold < 0) throw std::invalid_argument("ExpertParams.hold: must be >= 0");
+        if (!(prm_.give_way_buffer >= 0 && prm_.give_way_buffer <= 1))
+            throw std::invalid_argument("ExpertParams.give_way_buffer: must be in [0, 1] world units (got " + number_text(prm_.give_way_buffer) + ")");
         prm_.route().check("ExpertParams");
         guide_.cell = prm_.cell;
         guide_.clear = prm_.inflate;
@@ -3317,7 +3320,7 @@ public:
     const ClearanceGrid& grid() const { return guide_.grid(); }
     // Bytes of the planning workspace: the guide's grid and fields, the last search's states and
     // the last plan's reservations (capacities).
-    size_t workspace_bytes() const { return guide_.workspace_bytes() + states_.bytes() + reserved_.bytes(); }
+    size_t workspace_bytes() const { return guide_.workspace_bytes() + states_.bytes() + reserved_.bytes() + reserved_wide_.bytes(); }
     const RouteGuide& guide() const { return guide_; }
 
 private:
@@ -3332,6 +3335,7 @@ private:
     double total_ms_ = 0;
     detail::SpaceTimeStates states_;          // one search's states, reused
     detail::Reservations reserved_;           // the plan's reservations so far
+    detail::Reservations reserved_wide_;      // the same, wider: what robots that give way keep clear of
     std::vector<detail::Reservations::Centre> near_;
 
     int plan_index(int id) const {
@@ -3380,6 +3384,8 @@ private:
             std::stable_partition(order.begin(), order.end(), [&](int i) { return !heading_[i].gives_way; });
         }
         reserved_.reset(grid.n, grid.cell, 2 * r + prm_.buffer);
+        const bool any_gives_way = std::any_of(heading_.begin(), heading_.end(), [](const ExpertHeading& h) { return h.gives_way; });
+        reserved_wide_.reset(grid.n, grid.cell, 2 * r + prm_.buffer + (any_gives_way ? prm_.give_way_buffer : 0));
         plan_ = Plan{};
         rank_.assign(n, 0);
         plan_.ids.resize(n);
@@ -3398,7 +3404,10 @@ private:
                     const int c = path[std::min(ts, (int)path.size() - 1)];
                     if (std::find(step_cells.begin(), step_cells.end(), c) == step_cells.end()) step_cells.push_back(c);
                 }
-                for (int c : step_cells) reserved_.add(rank, t, c);
+                for (int c : step_cells) {
+                    reserved_.add(rank, t, c);
+                    if (any_gives_way) reserved_wide_.add(rank, t, c);
+                }
             }
             // Waypoints: cell centres, the exact target in its cell; on a coarsened grid,
             // points along the path at 1 / stretch cells per world step.
@@ -3438,6 +3447,7 @@ private:
         const int n = grid.n;
         const int start = grid.index(pos), goal = grid.index(heading.target);
         const ClosedCells closed = heading.closed;
+        const detail::Reservations& reserved = heading.gives_way ? reserved_wide_ : reserved_;
         const RouteClearance route = prm_.route();
         // The heuristic: the wavefront, or the Chebyshev steps when the straight way is open.
         const RouteField* field = guide_.straight(map, pos, heading.target, closed) ? nullptr : &guide_.steps_to(map, heading.target, closed);
@@ -3448,8 +3458,8 @@ private:
         // Charge for staying at the goal from step t on while others pass through it.
         std::vector<float> stay(T + 2, 0.f);
         for (int t = T; t >= 1; --t) {
-            reserved_.near(t, goal, near_);
-            stay[t] = stay[t + 1] + (float)prm_.conflict_cost * reserved_.count(near_, goal);
+            reserved.near(t, goal, near_);
+            stay[t] = stay[t + 1] + (float)prm_.conflict_cost * reserved.count(near_, goal);
         }
         stay[0] = stay[1];
         struct Node { float f, g; int state; };
@@ -3478,7 +3488,7 @@ private:
                 if (best_end < 0) { best_end = node.state; break; }  // the horizon, before any cheaper arrival
                 continue;
             }
-            reserved_.near(t + 1, c, near_);
+            reserved.near(t + 1, c, near_);
             const int row = c / n, col = c % n;
             for (int dr = -1; dr <= 1; ++dr)
                 for (int dc = -1; dc <= 1; ++dc) {
@@ -3488,7 +3498,7 @@ private:
                     if (!allowed(k2)) continue;
                     // One step (more into a narrow cell); a hair more for diagonals so straight runs win ties.
                     float g2 = node.g + (float)route.step_cost(grid.clear[k2]) + (dr && dc ? 1e-3f : 0.f) +
-                               (float)prm_.conflict_cost * (near_.empty() ? 0 : reserved_.count(near_, k2));
+                               (float)prm_.conflict_cost * (near_.empty() ? 0 : reserved.count(near_, k2));
                     const int s2 = states_.find_or_add(t + 1, k2);
                     if (states_.nodes[s2].g <= g2) continue;
                     states_.nodes[s2].g = g2;

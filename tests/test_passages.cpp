@@ -647,6 +647,9 @@ TEST_CASE("expert: with passage_traffic, robots meeting head-on inside a long on
     CHECK(turns.collisions() == 0);
     CHECK(turns.steps < 400);
     CHECK_FALSE(run(nullptr).success);  // the scene needs the rule
+    ExpertParams bad;
+    bad.give_way_buffer = -0.1;
+    CHECK_THROWS_WITH_AS(GuidedExpert(corridor_map(0.3, 2.5), bad), doctest::Contains("ExpertParams.give_way_buffer"), std::invalid_argument);
     TrafficConfig off;
     off.take_turns = false;
     CHECK(passage_traffic(off) == nullptr);  // no rule: each robot heads for its goal
