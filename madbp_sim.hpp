@@ -3153,23 +3153,27 @@ private:
 
 // The planned centres of higher-priority robots, by step and by square buckets of cells:
 // count() is how many robots reserve a cell at a step (one of their centres there is within the
-// reservation disc). Memory follows the centres (robots x steps x (hold + 2)), not the grid.
+// reservation disc, or the wider one that robots giving way keep clear of). Memory follows the
+// centres (robots x steps x (hold + 2)), not the grid.
 struct Reservations {
     struct Centre { int robot, cell; };
-    int n = 0, R = 0, side = 1, buckets = 1;  // grid side; disc radius and bucket side, cells; buckets a side
-    std::vector<char> disc;                   // (2R + 1)^2: the offset is inside the disc
+    struct Disc {  // the cell offsets within a radius
+        int R = 0;                 // radius, cells
+        std::vector<char> inside;  // (2R + 1)^2: the offset is inside the disc
+        bool holds(int dr, int dc) const { return std::abs(dr) <= R && std::abs(dc) <= R && inside[(size_t)(dr + R) * (2 * R + 1) + dc + R]; }
+    };
+    int n = 0, side = 1, buckets = 1;  // grid side; bucket side, cells (the wider disc's radius + 1); buckets a side
+    Disc disc, wide;
     std::unordered_map<uint64_t, std::vector<Centre>> at;  // (step, bucket) -> centres
     size_t centres = 0;
 
-    // A disc of radius `reach` (world units) on a grid of `grid_side` cells of `cell`.
-    void reset(int grid_side, double cell, double reach) {
+    // Discs of radius `reach` and `wide_reach` >= reach (world units) on a grid of `grid_side` cells of `cell`.
+    void reset(int grid_side, double cell, double reach, double wide_reach) {
         n = grid_side;
-        R = (int)std::ceil(reach / cell);
-        side = R + 1;
+        make_disc(disc, cell, reach);
+        make_disc(wide, cell, std::max(reach, wide_reach));
+        side = wide.R + 1;
         buckets = (n + side - 1) / side;
-        disc.assign((size_t)(2 * R + 1) * (2 * R + 1), 0);
-        for (int dr = -R; dr <= R; ++dr)
-            for (int dc = -R; dc <= R; ++dc) disc[(size_t)(dr + R) * (2 * R + 1) + dc + R] = std::hypot(dr, dc) * cell < reach;
         at.clear();
         centres = 0;
     }
@@ -3177,31 +3181,28 @@ struct Reservations {
         at[key(t, cell / n / side, cell % n / side)].push_back({robot, cell});
         ++centres;
     }
-    // The centres at step t whose disc may reach cell c or one of its neighbours, into `out`.
+    // The centres at step t whose wider disc may reach cell c or one of its neighbours, into `out`.
     void near(int t, int c, std::vector<Centre>& out) const {
         out.clear();
         if (at.empty()) return;
-        const int row = c / n, col = c % n;
+        const int row = c / n, col = c % n, R = wide.R;
         for (int br = std::max(0, (row - R - 1) / side); br <= std::min(buckets - 1, (row + R + 1) / side); ++br)
             for (int bc = std::max(0, (col - R - 1) / side); bc <= std::min(buckets - 1, (col + R + 1) / side); ++bc) {
                 auto it = at.find(key(t, br, bc));
                 if (it != at.end()) out.insert(out.end(), it->second.begin(), it->second.end());
             }
     }
-    // How many robots of `near` reserve `cell`.
-    int count(const std::vector<Centre>& near, int cell) const {
+    // How many robots of `near` reserve `cell` (with_wide: by the wider disc).
+    int count(const std::vector<Centre>& near, int cell, bool with_wide = false) const {
+        const Disc& d = with_wide ? wide : disc;
         int robots = 0, last = -1;
         const int row = cell / n, col = cell % n;
         for (size_t i = 0; i < near.size(); ++i) {
             const Centre& e = near[i];
-            const int dr = e.cell / n - row, dc = e.cell % n - col;
-            if (std::abs(dr) > R || std::abs(dc) > R || !disc[(size_t)(dr + R) * (2 * R + 1) + dc + R] || e.robot == last) continue;
+            if (!d.holds(e.cell / n - row, e.cell % n - col) || e.robot == last) continue;
             bool counted = false;  // a robot's centres at one step may lie in several buckets
-            for (size_t j = 0; j < i && !counted; ++j) {
-                const Centre& o = near[j];
-                const int r2 = o.cell / n - row, c2 = o.cell % n - col;
-                counted = o.robot == e.robot && std::abs(r2) <= R && std::abs(c2) <= R && disc[(size_t)(r2 + R) * (2 * R + 1) + c2 + R];
-            }
+            for (size_t j = 0; j < i && !counted; ++j)
+                counted = near[j].robot == e.robot && d.holds(near[j].cell / n - row, near[j].cell % n - col);
             if (!counted) ++robots;
             last = e.robot;
         }
@@ -3211,6 +3212,12 @@ struct Reservations {
 
 private:
     uint64_t key(int t, int br, int bc) const { return ((uint64_t)t * buckets + br) * buckets + bc; }
+    static void make_disc(Disc& d, double cell, double reach) {
+        d.R = (int)std::ceil(reach / cell);
+        d.inside.assign((size_t)(2 * d.R + 1) * (2 * d.R + 1), 0);
+        for (int dr = -d.R; dr <= d.R; ++dr)
+            for (int dc = -d.R; dc <= d.R; ++dc) d.inside[(size_t)(dr + d.R) * (2 * d.R + 1) + dc + d.R] = std::hypot(dr, dc) * cell < reach;
+    }
 };
 }  // namespace detail
 
@@ -3320,7 +3327,7 @@ public:
     const ClearanceGrid& grid() const { return guide_.grid(); }
     // Bytes of the planning workspace: the guide's grid and fields, the last search's states and
     // the last plan's reservations (capacities).
-    size_t workspace_bytes() const { return guide_.workspace_bytes() + states_.bytes() + reserved_.bytes() + reserved_wide_.bytes(); }
+    size_t workspace_bytes() const { return guide_.workspace_bytes() + states_.bytes() + reserved_.bytes(); }
     const RouteGuide& guide() const { return guide_; }
 
 private:
@@ -3335,7 +3342,6 @@ private:
     double total_ms_ = 0;
     detail::SpaceTimeStates states_;          // one search's states, reused
     detail::Reservations reserved_;           // the plan's reservations so far
-    detail::Reservations reserved_wide_;      // the same, wider: what robots that give way keep clear of
     std::vector<detail::Reservations::Centre> near_;
 
     int plan_index(int id) const {
@@ -3383,9 +3389,10 @@ private:
             traffic_(world, guide_, heading_);
             std::stable_partition(order.begin(), order.end(), [&](int i) { return !heading_[i].gives_way; });
         }
-        reserved_.reset(grid.n, grid.cell, 2 * r + prm_.buffer);
+        // Robots that give way keep give_way_buffer more clear (a wider disc); no wider reach
+        // unless one does, so plans without a traffic rule search as before.
         const bool any_gives_way = std::any_of(heading_.begin(), heading_.end(), [](const ExpertHeading& h) { return h.gives_way; });
-        reserved_wide_.reset(grid.n, grid.cell, 2 * r + prm_.buffer + (any_gives_way ? prm_.give_way_buffer : 0));
+        reserved_.reset(grid.n, grid.cell, 2 * r + prm_.buffer, 2 * r + prm_.buffer + (any_gives_way ? prm_.give_way_buffer : 0));
         plan_ = Plan{};
         rank_.assign(n, 0);
         plan_.ids.resize(n);
@@ -3404,10 +3411,7 @@ private:
                     const int c = path[std::min(ts, (int)path.size() - 1)];
                     if (std::find(step_cells.begin(), step_cells.end(), c) == step_cells.end()) step_cells.push_back(c);
                 }
-                for (int c : step_cells) {
-                    reserved_.add(rank, t, c);
-                    if (any_gives_way) reserved_wide_.add(rank, t, c);
-                }
+                for (int c : step_cells) reserved_.add(rank, t, c);
             }
             // Waypoints: cell centres, the exact target in its cell; on a coarsened grid,
             // points along the path at 1 / stretch cells per world step.
@@ -3447,7 +3451,6 @@ private:
         const int n = grid.n;
         const int start = grid.index(pos), goal = grid.index(heading.target);
         const ClosedCells closed = heading.closed;
-        const detail::Reservations& reserved = heading.gives_way ? reserved_wide_ : reserved_;
         const RouteClearance route = prm_.route();
         // The heuristic: the wavefront, or the Chebyshev steps when the straight way is open.
         const RouteField* field = guide_.straight(map, pos, heading.target, closed) ? nullptr : &guide_.steps_to(map, heading.target, closed);
@@ -3458,8 +3461,8 @@ private:
         // Charge for staying at the goal from step t on while others pass through it.
         std::vector<float> stay(T + 2, 0.f);
         for (int t = T; t >= 1; --t) {
-            reserved.near(t, goal, near_);
-            stay[t] = stay[t + 1] + (float)prm_.conflict_cost * reserved.count(near_, goal);
+            reserved_.near(t, goal, near_);
+            stay[t] = stay[t + 1] + (float)prm_.conflict_cost * reserved_.count(near_, goal, heading.gives_way);
         }
         stay[0] = stay[1];
         struct Node { float f, g; int state; };
@@ -3488,7 +3491,7 @@ private:
                 if (best_end < 0) { best_end = node.state; break; }  // the horizon, before any cheaper arrival
                 continue;
             }
-            reserved.near(t + 1, c, near_);
+            reserved_.near(t + 1, c, near_);
             const int row = c / n, col = c % n;
             for (int dr = -1; dr <= 1; ++dr)
                 for (int dc = -1; dc <= 1; ++dc) {
@@ -3498,7 +3501,7 @@ private:
                     if (!allowed(k2)) continue;
                     // One step (more into a narrow cell); a hair more for diagonals so straight runs win ties.
                     float g2 = node.g + (float)route.step_cost(grid.clear[k2]) + (dr && dc ? 1e-3f : 0.f) +
-                               (float)prm_.conflict_cost * (near_.empty() ? 0 : reserved.count(near_, k2));
+                               (float)prm_.conflict_cost * (near_.empty() ? 0 : reserved_.count(near_, k2, heading.gives_way));
                     const int s2 = states_.find_or_add(t + 1, k2);
                     if (states_.nodes[s2].g <= g2) continue;
                     states_.nodes[s2].g = g2;
