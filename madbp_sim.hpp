@@ -2874,9 +2874,11 @@ public:
         // not in view, the walk decides: with the defaults, clear > view_clear, that straight way
         // is not clear either, and a point `distance` along it would pass the goal.)
         if (!within && visible(p, goal, closed, clear)) return {p + (goal - p) * (distance / norm(goal - p)), false};
-        return walk_field(grid_.index(p), goal, closed, [&](const RouteField& steps) -> RouteGoal {
+        bool no_route = false;
+        const RouteGoal found = walk_field(grid_.index(p), goal, closed, [&](const RouteField& steps) -> RouteGoal {
             int k = start_cell(steps, grid_.index(p));
-            if (k < 0) return {goal, true};  // no route known from here: head straight for the goal
+            no_route = k < 0;
+            if (no_route) return {goal, true};  // no route known from here: head straight for the goal
             Vec2 sub = grid_.centre(k);
             while (steps[k] > 0) {
                 const int next = downhill(steps, k, goal);
@@ -2889,6 +2891,12 @@ public:
             }
             return {sub, false};
         });
+        // No way from here with cells closed (a robot told to go around a passage it already
+        // stands in or beside): the way through them, not straight at the goal through the map,
+        // which wedged robots against discs for good (docs/experiments.md, "Crowds among
+        // obstacles", 2026-11-30).
+        if (no_route && closed.any()) return subgoal(map, p, goal, distance);
+        return found;
     }
     // The route's cells (grid() indices) from p toward goal: p's cell (or its best reachable
     // neighbour when p is too close to the map), then downhill to the goal's cell, at most

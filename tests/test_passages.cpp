@@ -343,6 +343,12 @@ TEST_CASE("passages: at a corridor with a way around, the robot that would wait 
     // A robot already in the corridor the wrong way backs out, as where there is no way around.
     const Turns inside = arbitrate(map, {{0, 0.15}, {0, -0.15}}, {{0, -0.9}, {0, 0.9}});
     CHECK(inside.wait == std::vector<char>{kGoOn, kWait});
+    // From inside the closed corridor there is no way around: the route is the way through, not
+    // the goal straight across the corridor's wall.
+    const RouteGoal from_inside = guide.subgoal(map, {0, 0.15}, {0.8, -0.9}, 0.3, closed);
+    CHECK_FALSE(from_inside.final);
+    CHECK(from_inside.goal == guide.subgoal(map, {0, 0.15}, {0.8, -0.9}, 0.3).goal);
+    CHECK(std::abs(from_inside.goal.x) < 0.12);
 }
 
 TEST_CASE("passages: robots going around a corridor take its two sides in turn; with spread 0, the same side") {
