@@ -2893,8 +2893,8 @@ public:
         });
         // No way from here with cells closed (a robot told to go around a passage it already
         // stands in or beside): the way through them, not straight at the goal through the map,
-        // which wedged robots against discs for good (docs/experiments.md, "Crowds among
-        // obstacles", 2026-11-30).
+        // which wedged robots against discs for good (docs/experiments.md, "Going around from
+        // where a robot stands").
         if (no_route && closed.any()) return subgoal(map, p, goal, distance);
         return found;
     }
