@@ -34,7 +34,8 @@
 //        kPassableClearance (0.102): routes and passages share it. follower_filter() keeps 0.005
 //        to the map (was SPEC's 0.01, which froze robots in gaps their routes pass).
 //        FollowerConfig::unjam 15 (paper preset and the straight line: 0): a robot the filter
-//        holds with no progress backs out to its most open side (crowds among obstacles).
+//        holds with no progress backs out to its most open side (crowds among obstacles);
+//        FollowerConfig::unjam_near 0.35: one standing still beside another robot counts as held.
 //        GuidedExpert takes an ExpertTraffic rule (ExpertHeading: a robot's target, closed cells,
 //        whether it gives way); madbp.hpp's passage_traffic() is the planner's one-lane turns.
 //        RouteGuide::steps_to takes ClosedCells.
@@ -2349,6 +2350,11 @@ struct FollowerConfig {
     // another and a disc, stand still for good; backing out opens a way (docs/experiments.md,
     // "Backing out of jams").
     int unjam = 15;
+    // With unjam: a robot that stands still (speed below 0.05) with another robot's centre within
+    // this distance, world units, also counts as held (0: only the filter holds). In a knot among
+    // discs the windows themselves stand still, so the filter holds no one and nobody backs out
+    // (docs/experiments.md, "Standing still in a knot").
+    double unjam_near = 0.35;
 };
 class PlanFollower : public Policy {
 public:
@@ -2364,7 +2370,7 @@ public:
         if (cfg_.unjam < 0) throw std::invalid_argument("unjam: must be >= 0 steps (got " + std::to_string(cfg_.unjam) + ")");
         for (auto [field, v] : {std::pair<const char*, double>{"filter.margin", cfg_.filter.margin},
                                 {"filter.static_margin", cfg_.filter.static_margin}, {"filter.range", cfg_.filter.range},
-                                {"replan_error", cfg_.replan_error}})
+                                {"replan_error", cfg_.replan_error}, {"unjam_near", cfg_.unjam_near}})
             if (!(v >= 0)) throw std::invalid_argument(std::string(field) + ": must be >= 0 (got " + std::to_string(v) + ")");
     }
     std::vector<Vec2> act(const World& world) override {
@@ -2446,7 +2452,8 @@ private:
                 jam.held = 0;
                 continue;
             }
-            jam.held = jam.asked > 0.3 && jam.got < 0.3 * jam.asked ? jam.held + 1 : 0;
+            const bool held = jam.asked > 0.3 && jam.got < 0.3 * jam.asked;
+            jam.held = held || stands_in_knot(world, i) ? jam.held + 1 : 0;
             if (jam.out_until < t && jam.held >= cfg_.unjam && t - jam.nearer_at >= 2 * cfg_.unjam)
                 jam.out_until = t + 2 * cfg_.unjam / 3, jam.held = 0;
             if (jam.out_until < t) continue;
@@ -2461,6 +2468,14 @@ private:
             });
             if (norm(open) > 1e-9) u[i] = open / norm(open) * world.config().max_action;
         }
+    }
+    // unjam_near: robot i stands still beside another robot.
+    bool stands_in_knot(const World& world, int i) const {
+        const Agent& a = world.agents()[i];
+        if (cfg_.unjam_near <= 0 || norm(a.vel) >= 0.05) return false;
+        for (const Agent& b : world.agents())
+            if (b.id != a.id && norm(b.pos - a.pos) < cfg_.unjam_near) return true;
+        return false;
     }
     bool needs_plan(const World& world) const {
         if (plans_ == 0 || world.t() < plan_t0_ || world.t() - plan_t0_ >= cfg_.replan_every) return true;

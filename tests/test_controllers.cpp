@@ -348,6 +348,39 @@ TEST_CASE("PlanFollower: unjam backs a robot out of a standoff the filter holds 
     CHECK_THROWS_WITH_AS(PlanFollower(LinePlanner{}, bad), doctest::Contains("unjam"), std::invalid_argument);
 }
 
+TEST_CASE("PlanFollower: unjam_near backs out robots whose windows stand still in a knot") {
+    // Two robots 0.25 apart, each with its goal behind the other, and a planner whose windows
+    // keep every robot where it is (as the sampler's do in a knot among discs): the filter holds
+    // no one, so only a robot standing still beside another counting as held backs them out.
+    auto widest_after = [](double unjam_near, int from) {
+        World w;
+        w.add_agent({-0.125, 0}, {0.9, 0});
+        w.add_agent({0.125, 0}, {-0.9, 0});
+        FollowerConfig fc;
+        fc.unjam_near = unjam_near;
+        PlanFollower f([](const World& world) {
+            Plan p;
+            for (const Agent& a : world.agents()) p.ids.push_back(a.id), p.waypoints.push_back(std::vector<Vec2>(16, a.pos));
+            return p;
+        }, fc);
+        double widest = 0;
+        for (int t = 0; t < 80; ++t) {
+            w.step(f.act(w));
+            if (t >= from) widest = std::max(widest, norm(w.agents()[0].pos - w.agents()[1].pos));
+        }
+        CHECK(w.metrics().collisions() == 0);
+        return widest;
+    };
+    CHECK(FollowerConfig{}.unjam_near == 0.35);
+    const double still = widest_after(0, 20), backed = widest_after(0.35, 20);
+    MESSAGE("widest gap after step 20: " << still << " without unjam_near, " << backed << " with");
+    CHECK(still < 0.26);    // never moved
+    CHECK(backed > 0.35);   // backed out
+    FollowerConfig bad;
+    bad.unjam_near = -0.1;
+    CHECK_THROWS_WITH_AS(PlanFollower(LinePlanner{}, bad), doctest::Contains("unjam_near"), std::invalid_argument);
+}
+
 TEST_CASE("PlanFollower: lookahead aims between later waypoints; in steady tracking the robot runs that far ahead") {
     // One robot at rest, a plan along +x at half its top speed: waypoint k (0-based, the
     // position after step k + 1) at 0.02 (k + 1).
