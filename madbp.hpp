@@ -3688,7 +3688,7 @@ inline const std::vector<PlannerSetting>& planner_settings() {
          +[](C& c) -> double& { return c.follower.replan_error; }},
         {"follower.unjam", 0, 1000, "a robot the filter holds this many steps, with no progress for twice as long, backs out (0 = off)", nullptr, 0,
          +[](C& c) -> int& { return c.follower.unjam; }},
-        {"follower.unjam_near", 0, 10, "with unjam: a robot standing still with another this near, world units, counts as held (0 = only the filter holds)", nullptr, 0,
+        {"follower.unjam_near", 0, 10, "with unjam: a robot standing still with another this near, world units, counts as held (0 = off: only the filter holds)", nullptr, 0,
          +[](C& c) -> double& { return c.follower.unjam_near; }},
         {"follower.filter_rate", 0.01, 9.99, "the safety filter's barrier rate, 1/s (below 1/dt)", nullptr, 0,
          +[](C& c) -> double& { return c.follower.filter.rate; }},

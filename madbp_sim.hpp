@@ -35,7 +35,7 @@
 //        to the map (was SPEC's 0.01, which froze robots in gaps their routes pass).
 //        FollowerConfig::unjam 15 (paper preset and the straight line: 0): a robot the filter
 //        holds with no progress backs out to its most open side (crowds among obstacles);
-//        FollowerConfig::unjam_near 0.35: one standing still beside another robot counts as held.
+//        FollowerConfig::unjam_near (0, off): one standing still beside another robot counts as held.
 //        GuidedExpert takes an ExpertTraffic rule (ExpertHeading: a robot's target, closed cells,
 //        whether it gives way); madbp.hpp's passage_traffic() is the planner's one-lane turns.
 //        RouteGuide::steps_to takes ClosedCells.
@@ -2351,10 +2351,11 @@ struct FollowerConfig {
     // "Backing out of jams").
     int unjam = 15;
     // With unjam: a robot that stands still (speed below 0.05) with another robot's centre within
-    // this distance, world units, also counts as held (0: only the filter holds). In a knot among
-    // discs the windows themselves stand still, so the filter holds no one and nobody backs out
+    // this distance, world units, also counts as held (0, the default: only the filter holds). In
+    // a knot among discs the windows themselves stand still, so the filter holds no one and nobody
+    // backs out; 0.35 solves such knots at 64 robots but loses others at 128, so it is off
     // (docs/experiments.md, "Standing still in a knot").
-    double unjam_near = 0.35;
+    double unjam_near = 0;
 };
 class PlanFollower : public Policy {
 public:

@@ -371,7 +371,7 @@ TEST_CASE("PlanFollower: unjam_near backs out robots whose windows stand still i
         CHECK(w.metrics().collisions() == 0);
         return widest;
     };
-    CHECK(FollowerConfig{}.unjam_near == 0.35);
+    CHECK(FollowerConfig{}.unjam_near == 0);  // off: it loses knots at 128 robots (docs/experiments.md)
     const double still = widest_after(0, 20), backed = widest_after(0.35, 20);
     MESSAGE("widest gap after step 20: " << still << " without unjam_near, " << backed << " with");
     CHECK(still < 0.26);    // never moved
