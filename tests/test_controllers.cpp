@@ -318,25 +318,31 @@ TEST_CASE("PlanFollower: filter priorities break a symmetric standoff as the exp
     CHECK_THROWS_WITH_AS(PlanFollower(LinePlanner{}, bad), doctest::Contains("priority_weight"), std::invalid_argument);
 }
 
+// Two robots at x = -/+ `half_gap`, each with its goal 0.9 beyond the other, followed for 80
+// steps: the widest gap between them from step `from` on (the unjam tests); no collisions.
+static double widest_gap_after(double half_gap, Planner planner, const FollowerConfig& fc, int from) {
+    World w;
+    w.add_agent({-half_gap, 0}, {0.9, 0});
+    w.add_agent({half_gap, 0}, {-0.9, 0});
+    PlanFollower f(std::move(planner), fc);
+    double widest = 0;
+    for (int t = 0; t < 80; ++t) {
+        w.step(f.act(w));
+        if (t >= from) widest = std::max(widest, norm(w.agents()[0].pos - w.agents()[1].pos));
+    }
+    CHECK(w.metrics().collisions() == 0);
+    return widest;
+}
+
 TEST_CASE("PlanFollower: unjam backs a robot out of a standoff the filter holds for good") {
     // Two robots nose to nose, each driving straight at the other with equal filter weights: the
     // filter stops both, and without unjam they stand there for good. With unjam, once each has
     // been held `unjam` steps and come no nearer its goal for twice as long, it backs out.
     auto widest_after = [](int unjam, int from) {
-        World w;
-        w.add_agent({-0.12, 0}, {0.9, 0});
-        w.add_agent({0.12, 0}, {-0.9, 0});
         FollowerConfig fc;
         fc.priority_weight = 1;
         fc.unjam = unjam;
-        PlanFollower f(LinePlanner{}, fc);
-        double widest = 0;
-        for (int t = 0; t < 80; ++t) {
-            w.step(f.act(w));
-            if (t >= from) widest = std::max(widest, norm(w.agents()[0].pos - w.agents()[1].pos));
-        }
-        CHECK(w.metrics().collisions() == 0);
-        return widest;
+        return widest_gap_after(0.12, LinePlanner{}, fc, from);
     };
     CHECK(FollowerConfig{}.unjam == 15);
     const double held = widest_after(0, 20), backed = widest_after(15, 20);
@@ -353,23 +359,14 @@ TEST_CASE("PlanFollower: unjam_near backs out robots whose windows stand still i
     // keep every robot where it is (as the sampler's do in a knot among discs): the filter holds
     // no one, so only a robot standing still beside another counting as held backs them out.
     auto widest_after = [](double unjam_near, int from) {
-        World w;
-        w.add_agent({-0.125, 0}, {0.9, 0});
-        w.add_agent({0.125, 0}, {-0.9, 0});
         FollowerConfig fc;
         fc.unjam_near = unjam_near;
-        PlanFollower f([](const World& world) {
+        auto stand_still = [](const World& world) {
             Plan p;
             for (const Agent& a : world.agents()) p.ids.push_back(a.id), p.waypoints.push_back(std::vector<Vec2>(16, a.pos));
             return p;
-        }, fc);
-        double widest = 0;
-        for (int t = 0; t < 80; ++t) {
-            w.step(f.act(w));
-            if (t >= from) widest = std::max(widest, norm(w.agents()[0].pos - w.agents()[1].pos));
-        }
-        CHECK(w.metrics().collisions() == 0);
-        return widest;
+        };
+        return widest_gap_after(0.125, stand_still, fc, from);
     };
     CHECK(FollowerConfig{}.unjam_near == 0);  // off: it loses knots at 128 robots (docs/experiments.md)
     const double still = widest_after(0, 20), backed = widest_after(0.35, 20);
