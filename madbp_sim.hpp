@@ -2356,9 +2356,6 @@ struct FollowerConfig {
     // backs out; 0.35 solves such knots at 64 robots but loses others at 128, so it is off
     // (docs/experiments.md, "Standing still in a knot").
     double unjam_near = 0;
-    // With unjam: a robot the filter held last step turns its action right by this many degrees
-    // before the filter (0: off). Two robots held nose to nose both turn right and pass.
-    double swerve = 0;
 };
 class PlanFollower : public Policy {
 public:
@@ -2460,13 +2457,7 @@ private:
             jam.held = held || stands_in_knot(world, i) ? jam.held + 1 : 0;
             if (jam.out_until < t && jam.held >= cfg_.unjam && t - jam.nearer_at >= 2 * cfg_.unjam)
                 jam.out_until = t + 2 * cfg_.unjam / 3, jam.held = 0;
-            if (jam.out_until < t) {
-                if (cfg_.swerve > 0 && held) {
-                    const double c = std::cos(cfg_.swerve * std::acos(-1.0) / 180), sn = std::sin(cfg_.swerve * std::acos(-1.0) / 180);
-                    u[i] = Vec2{c * u[i].x + sn * u[i].y, -sn * u[i].x + c * u[i].y};
-                }
-                continue;
-            }
+            if (jam.out_until < t) continue;
             Vec2 open{0, 0};
             for (int j = 0; j < n; ++j) {
                 const Vec2 away = a.pos - world.agents()[j].pos;
