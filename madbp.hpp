@@ -112,6 +112,9 @@
 //        passage_traffic(): the guided expert takes the planner's turns in one-lane passages.
 //        Queue places follow the free space where the line out of a mouth meets a wall; of two
 //        robots coming in by one mouth to goals in a passage, the one going deeper goes first.
+//        PassageControl::follow_order: the robots going one way through a passage, in a line
+//        from the front; passage_traffic() has the expert plan each after the one ahead of it.
+//        expert_traffic(): passage_traffic()'s default, the planner's turns with spare 0.1.
 //   0.3  PlannerConfig: every planner setting in one struct, its defaults written once.
 //        PlannerConfig::tuned() (the default) and paper() (the paper's planner) presets.
 //        planner_settings(): one table behind validate(), set(), --set and --list-settings.
@@ -3835,6 +3838,8 @@ public:
         claims_.clear();
         claim_cells_.clear();
         made_way_ = false;
+        sent_out_.clear();
+        holder_.assign(avoidable_.size(), -1);
         if (mouths_.empty()) return 0;
         // Robots in a passage whose goal lies in it too (make_way): they may stand in the way of
         // robots passing through.
@@ -3885,6 +3890,7 @@ public:
             const Claim* lead = &claims_[a];
             for (size_t b = a + 1; b < claims_.size(); ++b)
                 if (claims_[b].passage == lead->passage && before(ids, claims_[b], *lead)) lead = &claims_[b];
+            holder_[lead->passage] = (int)(lead - claims_.data());
             losers_.clear();
             behind_.clear();
             for (size_t b = a; b < claims_.size(); ++b) {
@@ -3950,6 +3956,60 @@ public:
                 if (claims_[a].passage == claims_[b].passage && claims_[a].mouth != claims_[b].mouth) return true;
         return false;
     }
+    // Who follows whom through a passage, from the last arbitrate() (its `turn` and `pos`):
+    // ahead[i], the robot directly ahead of robot i in one line through its passage, or -1. A
+    // line: the claims going on into (or through) a passage by one mouth, the one farthest in
+    // first (robots in it by their distance from that mouth, then those outside by how near they
+    // are), headed by the parked robots sent out ahead of them (make_way), the farthest first.
+    // A robot follows one that goes on past `lookahead` and is in the passage or follows (one
+    // outside a line can step aside; one about to arrive is better planned after the robots
+    // that pass its goal, which it then makes way for, as the expert's priorities have it: the
+    // corridor interaction scene). Robots parking in the passage follow no one. A robot going on
+    // by another mouth than the holder's (it enters once the holder is `spare` out) follows the
+    // holder. A planner that plans robots one after another (the guided expert) plans each after
+    // the one it follows: planned first, a robot behind routes through the one ahead in a
+    // one-lane aisle, which then cannot go on, and one coming in by the far mouth sends the
+    // holder back out (docs/experiments.md, "The expert's line through an aisle").
+    void follow_order(const std::vector<char>& turn, const Vec2* pos, std::vector<int>& ahead) const {
+        ahead.assign(turn.size(), -1);
+        const double cell = made_with_[5];
+        auto depth = [&](const Claim& c) { return c.entry > 0 ? -c.entry * cell : norm(pos[c.robot] - mouths_[c.mouth].at); };
+        line_.clear();
+        for (int k = 0; k < (int)claims_.size(); ++k)
+            if (!claims_[k].parks && turn[claims_[k].robot] == kGoOn) line_.push_back(k);
+        // By passage and mouth, then the farthest in first: each line from its head.
+        std::sort(line_.begin(), line_.end(), [&](int a, int b) {
+            const Claim &x = claims_[a], &y = claims_[b];
+            if (x.passage != y.passage || x.mouth != y.mouth) return std::tie(x.passage, x.mouth) < std::tie(y.passage, y.mouth);
+            return depth(x) != depth(y) ? depth(x) > depth(y) : x.robot < y.robot;
+        });
+        bool followed = false;  // the robot before in the line is followed
+        for (size_t k = 0; k < line_.size(); ++k) {
+            const Claim& c = claims_[line_[k]];
+            const bool head = k == 0 || claims_[line_[k - 1]].passage != c.passage || claims_[line_[k - 1]].mouth != c.mouth;
+            if (head) {  // it follows the robots sent out ahead of it, the nearest last
+                for (int last = c.robot;;) {
+                    int nearest = -1;
+                    const double beyond = last == c.robot ? -1 : norm(pos[last] - pos[c.robot]);
+                    for (const SentOut& o : sent_out_)
+                        if (o.passage == c.passage && o.mouth == c.mouth && norm(pos[o.robot] - pos[c.robot]) > beyond &&
+                            (nearest < 0 || norm(pos[o.robot] - pos[c.robot]) < norm(pos[nearest] - pos[c.robot])))
+                            nearest = o.robot;
+                    if (nearest < 0) break;
+                    ahead[last] = nearest;
+                    last = nearest;
+                }
+            } else if (followed) {
+                ahead[c.robot] = claims_[line_[k - 1]].robot;
+            }
+            followed = !c.arrives && (c.entry == 0 || ahead[c.robot] >= 0);
+        }
+        for (int k : line_) {  // going on by another mouth than the holder's: after the holder
+            const Claim& c = claims_[k];
+            const int h = holder_[c.passage];
+            if (ahead[c.robot] < 0 && h >= 0 && claims_[h].mouth != c.mouth) ahead[c.robot] = claims_[h].robot;
+        }
+    }
     // The cells robot i of the last arbitrate() keeps out of (its passage's; none unless it goes around).
     ClosedCells closed_to(int i) const {
         if (i < 0 || i >= (int)around_.size() || around_[i] < 0) return {};
@@ -3963,6 +4023,7 @@ private:
         int robot = -1, passage = -1, mouth = -1;
         int entry = 0, exit = 0;  // route cells before the passage (0: in it) and before its last cell there
         bool parks = false;       // its goal lies in the passage (make_way)
+        bool arrives = false;     // its route reaches its goal within `lookahead` (follow_order)
         int cells_begin = 0, cells_end = 0;  // claim_cells_[begin, end): its route's cells in the passage, ahead of it
     };
     WorldMap map_;
@@ -3981,12 +4042,18 @@ private:
     std::vector<Claim> asked_claims_;   // arbitrate: the asked robots' claims, then made in robot order
     std::vector<char> relevant_;        // arbitrate: per passage, some asked robot claims it
     std::vector<int> relevant_list_;    // the same passages, listed
+    std::vector<int> holder_;           // arbitrate: per passage, the claim that holds it (-1: none)
     std::vector<std::vector<int>> side_closed_;  // per avoidable passage p and side s, [2p + s]: the cells a robot going around on s keeps out of, sorted
     std::vector<Claim> claims_;
     std::vector<int> claim_cells_;  // arbitrate: the claims' route cells in their passages
     std::vector<std::pair<int, int>> parked_;   // arbitrate: (robot, passage): robots in a passage that holds their goal (make_way)
     std::vector<std::pair<int, int>> waiters_;  // arbitrate: (robot, mouth): who queues where at one passage
     bool made_way_ = false;         // arbitrate: some parked robot was sent out ahead of a holder
+    struct SentOut {
+        int robot, passage, mouth;  // a parked robot sent out ahead of the holder of `passage`, in by `mouth` (make_way)
+    };
+    std::vector<SentOut> sent_out_;  // arbitrate: follow_order's heads of lines
+    mutable std::vector<int> line_;  // follow_order: the claims going on, in lines
     struct Plug {
         uint64_t key;
         std::vector<int> cells;  // sorted
@@ -4005,6 +4072,7 @@ private:
             if (cell_passage[route_[j]] >= 0) c.passage = cell_passage[route_[j]], c.entry = j;
         if (c.passage < 0) return false;
         c.parks = params.make_way && cell_passage[guide.grid().index(goal[i])] == c.passage;
+        c.arrives = (int)route_.size() < max_cells;
         if (c.parks && (int)route_.size() == max_cells)  // the whole way to its goal: who it passes there (make_way)
             guide.route_cells(map, pos[i], goal[i], std::numeric_limits<int>::max(), route_);
         c.exit = c.entry;
@@ -4055,7 +4123,7 @@ private:
             for (int m = 0; m < (int)mouths_.size(); ++m)
                 if (mouths_[m].passage == lead.passage && m != lead.mouth && (out < 0 || norm(mouths_[m].at - pos[i]) < norm(mouths_[out].at - pos[i])))
                     out = m;
-            if (out >= 0) queue(i, out);
+            if (out >= 0) queue(i, out), sent_out_.push_back({i, lead.passage, lead.mouth});
         }
         for (size_t b = first; b < claims_.size(); ++b) {
             const Claim& c = claims_[b];
@@ -4463,21 +4531,33 @@ private:
     }
 };
 
+// The expert's turns: the planner's (TrafficConfig), but a claim from another mouth waits until
+// those inside are 0.1 out (`spare`; the planner's 0). The expert's robots track grid plans with
+// lag, so one coming in planned to enter as another leaves met it nose to nose in the mouth
+// (maze-32-32-4, seed 0 at cell 0.3 with 32 robots; docs/experiments.md, "The expert's line
+// through an aisle").
+inline TrafficConfig expert_traffic() {
+    TrafficConfig traffic = PlannerConfig{}.traffic;
+    traffic.spare = 0.1;
+    return traffic;
+}
+
 // The guided expert's traffic rule with the planner's conventions (ExpertTraffic, madbp_sim.hpp
 // Section 12): before each of its plans, PassageControl with `traffic` decides who holds each
 // one-lane passage, and the expert plans a robot that waits to its queue place and one that goes
-// around out of the passage's cells, both after the others. Without it, two robots meeting
+// around out of the passage's cells, both after the others, and a robot going on through a
+// passage right after the one ahead of it there (follow_order). Without it, two robots meeting
 // head-on in a maze's one-cell aisle, or one parked at its goal in another's way, hold each other
 // for good (issue 46). Use: GuidedExpert expert(map, ExpertParams{}, passage_traffic());
 // traffic.take_turns false: no rule (each robot heads for its goal). Each call makes a rule with
 // its own state (the passages found, scratch arrays): give each expert its own.
-inline ExpertTraffic passage_traffic(const TrafficConfig& traffic = PlannerConfig{}.traffic) {
+inline ExpertTraffic passage_traffic(const TrafficConfig& traffic = expert_traffic()) {
     if (!traffic.take_turns) return nullptr;
     struct State {
         PassageControl control;
         std::vector<Vec2> pos, goal, point;
         std::vector<char> at_goal, turn;
-        std::vector<int> ids;
+        std::vector<int> ids, ahead;
     };
     auto state = std::make_shared<State>();
     state->control.params = traffic;
@@ -4490,10 +4570,12 @@ inline ExpertTraffic passage_traffic(const TrafficConfig& traffic = PlannerConfi
             s.pos[i] = ag[i].pos, s.goal[i] = ag[i].goal, s.ids[i] = ag[i].id;
             s.at_goal[i] = world.at_goal(ag[i]);
         }
-        if (s.control.arbitrate(guide, world.map(), n, s.pos.data(), s.goal.data(), s.at_goal.data(), s.turn, s.point, s.ids.data()) == 0) return;
+        s.control.arbitrate(guide, world.map(), n, s.pos.data(), s.goal.data(), s.at_goal.data(), s.turn, s.point, s.ids.data());
+        s.control.follow_order(s.turn, s.pos.data(), s.ahead);
         for (int i = 0; i < n; ++i) {
             if (s.turn[i] == PassageControl::kWait) heading[i] = ExpertHeading{s.point[i], {}, true};
             if (s.turn[i] == PassageControl::kGoAround) heading[i] = ExpertHeading{s.goal[i], s.control.closed_to(i), true};
+            heading[i].after = s.ahead[i];
         }
     };
 }

@@ -39,6 +39,8 @@
 //        GuidedExpert takes an ExpertTraffic rule (ExpertHeading: a robot's target, closed cells,
 //        whether it gives way); madbp.hpp's passage_traffic() is the planner's one-lane turns.
 //        RouteGuide::steps_to takes ClosedCells.
+//        ExpertHeading::after: a robot is planned right after the one it follows (a line
+//        through a one-lane aisle is planned from the front).
 //   0.3  PassageControl and its parameters move to madbp.hpp (the planner's traffic conventions).
 //        ClearanceGrid moves to Section 2; ReachGrid is gone (detail::all_reachable on its layout).
 //        movingai_scene / load_movingai_scene: MovingAI MAPF benchmark maps and scenarios as scenes.
@@ -214,6 +216,7 @@ inline std::string number_text(double v) {
 #include <sstream>
 #include <sys/file.h>
 #include <sys/stat.h>
+#include <tuple>
 #include <unordered_map>
 #include <utility>
 #include <vector>
@@ -3280,7 +3283,9 @@ private:
 struct ExpertHeading {
     Vec2 target;            // where the robot is planned to go this plan (its goal unless a rule says otherwise)
     ClosedCells closed;     // grid cells its route keeps out of (none by default)
-    bool gives_way = false; // it waits or goes around for others: planned after every robot that does not
+    bool gives_way = false; // it waits or goes around for others: planned after every robot that does not,
+                            // and so is a line it heads (`after`)
+    int after = -1;         // the index of a robot it follows (through a one-lane aisle): planned right after it
 };
 // heading[i] comes filled for world.agents()[i] (its goal, nothing closed); `guide` is the expert's.
 using ExpertTraffic = std::function<void(const World& world, RouteGuide& guide, std::vector<ExpertHeading>& heading)>;
@@ -3367,6 +3372,7 @@ private:
     detail::SpaceTimeStates states_;          // one search's states, reused
     detail::Reservations reserved_;           // the plan's reservations so far
     std::vector<detail::Reservations::Centre> near_;
+    std::vector<int> slot_, line_slot_, depth_;  // follow_order's scratch: per robot, its slot, its line's, its place in the line
 
     int plan_index(int id) const {
         for (size_t i = 0; i < plan_.ids.size(); ++i) if (plan_.ids[i] == id) return (int)i;
@@ -3412,6 +3418,7 @@ private:
         if (traffic_) {
             traffic_(world, guide_, heading_);
             std::stable_partition(order.begin(), order.end(), [&](int i) { return !heading_[i].gives_way; });
+            follow_order(order);
         }
         // Robots that give way keep give_way_buffer more clear (a wider disc); no wider reach
         // unless one does, so plans without a traffic rule search as before.
@@ -3465,6 +3472,26 @@ private:
             rank_[i] = rank;
         }
         plan_t0_ = world.t();
+    }
+
+    // Robots that follow another (ExpertHeading::after) are planned in a line at the slot of its
+    // head (the robot no one is ahead of), then by how far down the line a robot is. Planned before
+    // the robot ahead, a robot behind it in a one-lane aisle routes through it, and the one ahead,
+    // planned around that, cannot go on (maze-32-32-4: the knot at the bottom aisle's left mouth;
+    // docs/experiments.md, "The expert's line through an aisle").
+    void follow_order(std::vector<int>& order) {
+        const int n = (int)order.size();
+        if (std::none_of(heading_.begin(), heading_.end(), [n](const ExpertHeading& h) { return h.after >= 0 && h.after < n; })) return;
+        slot_.resize(n), line_slot_.resize(n), depth_.resize(n);
+        for (int r = 0; r < n; ++r) slot_[order[r]] = r;
+        for (int i = 0; i < n; ++i) {
+            int head = i, depth = 0;  // at most n links: a cycle (never made by PassageControl) ends there
+            while (depth < n && heading_[head].after >= 0 && heading_[head].after < n) head = heading_[head].after, ++depth;
+            line_slot_[i] = slot_[head], depth_[i] = depth;
+        }
+        std::sort(order.begin(), order.end(), [&](int a, int b) {
+            return std::tie(line_slot_[a], depth_[a], slot_[a]) < std::tie(line_slot_[b], depth_[b], slot_[b]);
+        });
     }
 
     // Space-time A* for one agent at `pos` to heading.target against the current reservations,
