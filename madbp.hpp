@@ -3806,6 +3806,7 @@ public:
         if (!(map_ == map) || (int)passage_.size() != grid.n * grid.n || !std::equal(shape, shape + 6, made_with_)) {
             find_passages(grid, map);
             std::copy(shape, shape + 6, made_with_);
+            cell_ = grid.cell;
         }
         return passage_;
     }
@@ -3972,8 +3973,7 @@ public:
     // holder back out (docs/experiments.md, "The expert's line through an aisle").
     void follow_order(const std::vector<char>& turn, const Vec2* pos, std::vector<int>& ahead) const {
         ahead.assign(turn.size(), -1);
-        const double cell = made_with_[5];
-        auto depth = [&](const Claim& c) { return c.entry > 0 ? -c.entry * cell : norm(pos[c.robot] - mouths_[c.mouth].at); };
+        auto depth = [&](const Claim& c) { return c.entry > 0 ? -c.entry * cell_ : norm(pos[c.robot] - mouths_[c.mouth].at); };
         line_.clear();
         for (int k = 0; k < (int)claims_.size(); ++k)
             if (!claims_[k].parks && turn[claims_[k].robot] == kGoOn) line_.push_back(k);
@@ -4028,6 +4028,7 @@ private:
     };
     WorldMap map_;
     double made_with_[6] = {};  // the parameters and cell the passages were found with
+    double cell_ = 0;           // that cell, world units (follow_order)
     std::vector<int> passage_, mouth_, route_, losers_, behind_, queue_, around_, around_side_, going_;
     std::vector<Mouth> mouths_;
     std::vector<std::vector<int>> mouth_cells_;  // per mouth: its cells

@@ -3372,7 +3372,7 @@ private:
     detail::SpaceTimeStates states_;          // one search's states, reused
     detail::Reservations reserved_;           // the plan's reservations so far
     std::vector<detail::Reservations::Centre> near_;
-    std::vector<int> slot_, line_slot_, depth_;  // follow_order's scratch: per robot, its slot, its line's, its place in the line
+    std::vector<int> slot_, line_slot_, depth_;  // plan_lines' scratch: per robot, its slot, its line's, its place in the line
 
     int plan_index(int id) const {
         for (size_t i = 0; i < plan_.ids.size(); ++i) if (plan_.ids[i] == id) return (int)i;
@@ -3418,7 +3418,7 @@ private:
         if (traffic_) {
             traffic_(world, guide_, heading_);
             std::stable_partition(order.begin(), order.end(), [&](int i) { return !heading_[i].gives_way; });
-            follow_order(order);
+            plan_lines(order);
         }
         // Robots that give way keep give_way_buffer more clear (a wider disc); no wider reach
         // unless one does, so plans without a traffic rule search as before.
@@ -3479,7 +3479,7 @@ private:
     // the robot ahead, a robot behind it in a one-lane aisle routes through it, and the one ahead,
     // planned around that, cannot go on (maze-32-32-4: the knot at the bottom aisle's left mouth;
     // docs/experiments.md, "The expert's line through an aisle").
-    void follow_order(std::vector<int>& order) {
+    void plan_lines(std::vector<int>& order) {
         const int n = (int)order.size();
         if (std::none_of(heading_.begin(), heading_.end(), [n](const ExpertHeading& h) { return h.after >= 0 && h.after < n; })) return;
         slot_.resize(n), line_slot_.resize(n), depth_.resize(n);
