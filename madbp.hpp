@@ -3507,10 +3507,6 @@ struct PlannerConfig {
         // >= 1: in a team larger than a scene, each scene's robot of first priority (priority_order:
         // longest way when first seen) is pushed this many times less than its last (1: all alike).
         float priority = 4;
-        // > 0: in a team larger than a scene, a robot whose way ahead is crowded by robots not
-        // going its way heads up to 50 degrees aside where fewer are, at this weight per robot
-        // against the detour's cost (1 - cos angle); 0: off.
-        float crowd_detour = 0;
         WindowCost cost;         // the cost the guidance descends and best-of-k ranks
     } guidance;
     TrafficConfig traffic;
@@ -3639,8 +3635,6 @@ inline const std::vector<PlannerSetting>& planner_settings() {
          +[](C& c) -> float& { return c.guidance.keep_right; }},
         {"guidance.priority", 1, 1e6, "in a team larger than a scene, each scene's first robot in priority is pushed this many times less than its last (1 = all alike)", nullptr, 0,
          +[](C& c) -> float& { return c.guidance.priority; }},
-        {"guidance.crowd_detour", 0, 1e6, "in a team larger than a scene, a robot whose way ahead is crowded heads up to 50 degrees aside (weight per robot; 0 = off)", nullptr, 0,
-         +[](C& c) -> float& { return c.guidance.crowd_detour; }},
         {"guidance.agent_weight", 0, 1e6, "cost weight of robots closer than 2 radius + agent_margin", nullptr, 0,
          +[](C& c) -> float& { return c.guidance.cost.agent_weight; }},
         {"guidance.map_weight", 0, 1e6, "cost weight of robots closer than radius + map_margin to the map", nullptr, 0,
@@ -4803,7 +4797,6 @@ private:
     std::vector<Vec2> pos_, goal_;   // the robots planned for (ego first for plan_robot)
     std::vector<char> at_goal_;
     std::vector<RouteGoal> route_;   // what each is told to head for (route_goal)
-    std::vector<Vec2> heading_;      // detour_crowds: each robot's unit heading toward route_ (0: none)
     PassageControl passages_;        // traffic.take_turns: the one-lane passages
     std::vector<char> waiting_;      // robots told to wait, and where
     std::vector<Vec2> wait_point_;
@@ -4865,7 +4858,6 @@ private:
         for (int i = 0; i < n; ++i)
             if (in_scene_[i]) route_[i] = route_goal(guide_, c, map, pos_[i], waiting_[i] == PassageControl::kWait ? wait_point_[i] : goal_[i],
                                                      waiting_[i] == PassageControl::kGoAround ? passages_.closed_to(i) : ClosedCells{});
-        if (K < n) detour_crowds(map, n);
         // Each neighbourhood scene draws its own noise, seeded by the plan and its seed robot's id.
         const uint64_t plan_seed = local ? rng_.next_u64() : 0;
         if (local) batch_.noise_seed.resize(scenes);
@@ -4927,47 +4919,6 @@ private:
         }
         priority_order(m, [&](int k) { return at_goal_[robots[k]] != 0; }, [&](int k) { return priority_key_[k]; }, [&](int k) { return ids_[robots[k]]; }, order_);
         for (int rank = 0; rank < m; ++rank) batch_.priority[(size_t)b * K + order_[rank]] = (float)priority_weight_of(rank, m, first);
-    }
-
-    // guidance.crowd_detour: each robot of a scene heading for a subgoal (not its goal), going
-    // on, whose way ahead (the next `reach`, a lane 2 * lane wide) holds robots not going its
-    // way, turns its subgoal by the angle of {0, +-25, +-50} degrees that costs least: (1 - cos
-    // angle) + weight * the robots ahead, each counted by how little it goes this way ((1 - cos)
-    // / 2 of the two headings; 1 at its goal) and how near it is.
-    void detour_crowds(const WorldMap& map, int n) {
-        const double weight = settings.guidance.crowd_detour, reach = 1.0, lane = 0.25;
-        if (weight <= 0) return;
-        heading_.assign(n, Vec2{0, 0});
-        for (int i = 0; i < n; ++i)
-            if (in_scene_[i] && !at_goal_[i] && norm(route_[i].goal - pos_[i]) > 1e-9) heading_[i] = (route_[i].goal - pos_[i]) / norm(route_[i].goal - pos_[i]);
-        auto crowd = [&](int i, Vec2 v) {
-            double sum = 0;
-            for (int j = 0; j < n; ++j) {
-                if (j == i) continue;
-                const Vec2 r = pos_[j] - pos_[i];
-                const double along = dot(r, v);
-                if (along <= 0 || along > reach || std::abs(r.x * v.y - r.y * v.x) > lane) continue;
-                const double against = at_goal_[j] || norm(heading_[j]) == 0 ? 1.0 : 0.5 * (1 - dot(heading_[j], v));
-                sum += against * (1 - along / reach);
-            }
-            return sum;
-        };
-        constexpr double kDeg = 3.14159265358979323846 / 180;
-        for (int i = 0; i < n; ++i) {
-            if (!in_scene_[i] || route_[i].final || waiting_[i] != PassageControl::kGoOn || norm(heading_[i]) == 0) continue;
-            const Vec2 u = heading_[i];
-            double best = weight * crowd(i, u), best_angle = 0;
-            if (best == 0) continue;
-            for (double deg : {25.0, -25.0, 50.0, -50.0}) {
-                const double a = deg * kDeg;
-                const Vec2 v{u.x * std::cos(a) - u.y * std::sin(a), u.x * std::sin(a) + u.y * std::cos(a)};
-                const double cost = (1 - std::cos(a)) + weight * crowd(i, v);
-                if (cost < best && guide_.in_view(map, pos_[i], pos_[i] + v * kRouteLookahead)) best = cost, best_angle = a;
-            }
-            if (best_angle == 0) continue;
-            const Vec2 d = route_[i].goal - pos_[i];
-            route_[i].goal = pos_[i] + Vec2{d.x * std::cos(best_angle) - d.y * std::sin(best_angle), d.x * std::sin(best_angle) + d.y * std::cos(best_angle)};
-        }
     }
 
     // Robot b's neighbourhood into members_[0, m), returns m: b and its K-1 nearest (nearest
