@@ -2587,6 +2587,7 @@ struct EvalResult {
     double steps = 0;                    // mean steps of successful episodes (NaN if none)
     double decision_ms = 0;              // mean of the episodes' mean decision times
     std::vector<EpisodeResult> runs;     // per episode, without logs
+    std::vector<uint64_t> failed_seeds;  // the seeds of the episodes that failed, in order (to render or trace them)
 };
 inline World make_episode_world(const EvalConfig& c, uint64_t seed) {
     if (c.scene) return make_world(*c.scene, c.world);
@@ -2631,6 +2632,8 @@ inline EvalResult evaluate(const EvalConfig& c, const PolicyFactory& factory) {
     if (!error.empty()) throw std::runtime_error(error);
     int wins = 0;
     double steps = 0;
+    for (int e = 0; e < c.episodes; ++e)
+        if (!r.runs[e].success) r.failed_seeds.push_back(c.seed + e);
     for (const EpisodeResult& e : r.runs) {
         wins += e.success;
         if (e.success) steps += e.steps;

@@ -609,6 +609,25 @@ TEST_CASE("evaluate: episode i uses seed S+i; success, its standard error, steps
     CHECK_THROWS_AS(evaluate(c, [](const World&, uint64_t) { return std::make_unique<ClfQp>(); }), std::invalid_argument);
 }
 
+TEST_CASE("evaluate: failed_seeds lists the seeds of the failed episodes, in order") {
+    struct Still : Policy {
+        std::vector<Vec2> act(const World& w) override { return std::vector<Vec2>(w.size()); }
+    };
+    EvalConfig c;
+    c.agents = 1;
+    c.episodes = 6;
+    c.seed = 20;
+    c.threads = 2;  // episodes finish out of order; the list is still by seed
+    // CLF-QP brings one robot home in an empty world; a robot that stands still does not.
+    EvalResult r = evaluate(c, [](const World&, uint64_t seed) -> std::unique_ptr<Policy> {
+        if (seed % 3 == 0) return std::make_unique<Still>();
+        return std::make_unique<ClfQp>();
+    });
+    CHECK(r.failed_seeds == std::vector<uint64_t>{21, 24});
+    CHECK(r.success == doctest::Approx(4.0 / 6));
+    for (int e = 0; e < c.episodes; ++e) CHECK(r.runs[e].success == ((c.seed + e) % 3 != 0));
+}
+
 TEST_CASE("render: static and animated SVG hold the map, goals, tracks and collisions") {
     World w = make_random_world("obstacles", 3, 2);
     FollowerConfig fc;

@@ -79,7 +79,8 @@ int cmd_eval(Args& a) {
             "                    about 0.425 sqrt(n) beyond: 3.4 at 64, 13.6 at 1024; with --scenario 1.2; at most 100)\n"
             "  --max-steps N     episode step limit (default 100 x half-size / 1.2; with --scene at least twice\n"
             "                    the longest robot's shortest route at cruise: madbp::scene_step_limit)\n"
-            "  --json            one JSON object per cell instead of the table\n"
+            "  --json            one JSON object per cell instead of the table, with failed_seeds (the\n"
+            "                    seeds of the episodes that failed: render or trace those)\n"
             "  --suite paper     every table and figure of the paper plus ours (--suite paper --help)\n"
             "  --list-settings   every planner setting (--set) with its defaults, range and meaning\n"
             "Columns: method, map, n_train, n, episodes, success, success_se, collisions (per\n"
@@ -156,6 +157,9 @@ int cmd_eval(Args& a) {
                     .add("collisions", r.collisions).add("agent_collisions", r.agent_collisions)
                     .add("obstacle_collisions", r.obstacle_collisions).add("steps", r.steps).add("plan_ms", r.decision_ms)
                     .add("seed", (long)seed);
+                std::string failed;
+                for (uint64_t f : r.failed_seeds) failed += (failed.empty() ? "" : ", ") + std::to_string(f);
+                j.raw("failed_seeds", "[" + failed + "]");
                 std::printf("%s\n", j.line().c_str());
             } else {
                 std::printf("%-8s %-10s %7s %3ld %8d %8s %10s %10s %6s %8s\n", method_name.c_str(),
