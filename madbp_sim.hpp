@@ -41,6 +41,7 @@
 //        RouteGuide::steps_to takes ClosedCells.
 //        ExpertHeading::after: a robot is planned right after the one it follows (a line
 //        through a one-lane aisle is planned from the front).
+//        EvalResult::failed_seeds: the seeds of the episodes that failed.
 //   0.3  PassageControl and its parameters move to madbp.hpp (the planner's traffic conventions).
 //        ClearanceGrid moves to Section 2; ReachGrid is gone (detail::all_reachable on its layout).
 //        movingai_scene / load_movingai_scene: MovingAI MAPF benchmark maps and scenarios as scenes.
