@@ -2633,9 +2633,9 @@ inline EvalResult evaluate(const EvalConfig& c, const PolicyFactory& factory) {
     if (!error.empty()) throw std::runtime_error(error);
     int wins = 0;
     double steps = 0;
-    for (int e = 0; e < c.episodes; ++e)
-        if (!r.runs[e].success) r.failed_seeds.push_back(c.seed + e);
-    for (const EpisodeResult& e : r.runs) {
+    for (int i = 0; i < c.episodes; ++i) {
+        const EpisodeResult& e = r.runs[i];
+        if (!e.success) r.failed_seeds.push_back(c.seed + i);
         wins += e.success;
         if (e.success) steps += e.steps;
         r.agent_collisions += e.agent_collisions;
