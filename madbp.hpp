@@ -86,7 +86,8 @@
 //   7 planner settings: TrafficConfig, PlannerConfig (tuned(), paper(), validate, set),
 //     PlannerSetting, planner_settings (the table), kSmallPlanWindows                 [8]
 //   8 traffic conventions: PassageControl (one-lane passages: take turns, go around, queue),
-//     passage_traffic (the guided expert takes the same turns)                          [8]
+//     passage_traffic (the guided expert takes the same turns), CrowdRoutes (routes around
+//     crowds)                                                                           [8]
 //   9 planner: DiffusionPlanner (plan, neighbourhoods, plan_robot), make_follower,
 //     DecentralisedTeam                                                                [8]
 //
@@ -115,6 +116,8 @@
 //        PassageControl::follow_order: the robots going one way through a passage, in a line
 //        from the front; passage_traffic() has the expert plan each after the one ahead of it.
 //        expert_traffic(): passage_traffic()'s default, the planner's turns with spare 0.1.
+//        CrowdRoutes, traffic.crowd_weight and crowd_cell: in a team larger than a scene, robots
+//        are routed around the crowds the others' routes make (issue 47).
 //   0.3  PlannerConfig: every planner setting in one struct, its defaults written once.
 //        PlannerConfig::tuned() (the default) and paper() (the paper's planner) presets.
 //        planner_settings(): one table behind validate(), set(), --set and --list-settings.
@@ -3459,6 +3462,12 @@ struct TrafficConfig {
     bool go_around = true;         // robots that would wait go around it (false: it is no passage)
     double spread = 0.3;           // and take its two sides in turn: each the side whose way, plus this per
                                    // robot already going that side, is shortest (0: all the shortest way)
+    // Routes around crowds (CrowdRoutes), in a team larger than a scene in a world larger than the
+    // training world: a coarse cell's step costs 1 + crowd_weight x the robots routed through it
+    // per its free area (0: every robot heads straight along its map route). Tuned on obstacles 128 and 64, seeds 1050-1099 and 1000-1049
+    // (docs/experiments.md, "Routes around crowds").
+    double crowd_weight = 0.04;
+    double crowd_cell = 0.6;       // the coarse cells' side, world units
 };
 
 // Everything a plan uses, each default written once, here: who plans with whom, the sampler, its
@@ -3530,6 +3539,7 @@ struct PlannerConfig {
         p.guidance.priority = 1;
         p.traffic.take_turns = false;
         p.traffic.passage_replan = 0;
+        p.traffic.crowd_weight = 0;
         p.follower.priority_weight = 1;
         p.follower.lookahead = 0;
         p.follower.replan_error = 0;
@@ -3679,6 +3689,10 @@ inline const std::vector<PlannerSetting>& planner_settings() {
          +[](C& c) -> bool& { return c.traffic.go_around; }},
         {"traffic.spread", 0, 100, "robots going around take its sides in turn: this much per robot already on a side", nullptr, 0,
          +[](C& c) -> double& { return c.traffic.spread; }},
+        {"traffic.crowd_weight", 0, 100, "in a team larger than a scene in a world larger than training, robots route around crowds: a cell costs 1 + this per robot routed through it (0 = off)", nullptr, 0,
+         +[](C& c) -> double& { return c.traffic.crowd_weight; }},
+        {"traffic.crowd_cell", 0.2, 100, "cell side of the grid routes around crowds are made on (world units)", nullptr, 0,
+         +[](C& c) -> double& { return c.traffic.crowd_cell; }},
         {"follower.replan_every", 1, 1000, "steps executed per plan (m)", nullptr, 0,
          +[](C& c) -> int& { return c.follower.replan_every; }},
         {"follower.safety_filter", 0, 1, "the SPEC 3.2 safety filter runs after the tracker", nullptr, 0,
@@ -3742,7 +3756,7 @@ inline void PlannerConfig::set(const std::string& name, const std::string& text)
 }
 
 // =============================================================================================
-// Section 8. Traffic conventions: one-lane passages (PassageControl)
+// Section 8. Traffic conventions: one-lane passages (PassageControl), crowds (CrowdRoutes)
 // =============================================================================================
 
 // One-lane passages (issue 12): corridors too narrow for two robots to pass side by side. Two
@@ -4581,6 +4595,212 @@ inline ExpertTraffic passage_traffic(const TrafficConfig& traffic = expert_traff
     };
 }
 
+// Routes around crowds (issue 47). In a team larger than a scene, the straight ways between
+// random starts and goals cross most near the world's centre; at constant density the robots
+// that meet there grow with the world's side, and at 128 robots among obstacles they stand in
+// crowds of 15-20 for 100-250 steps (docs/experiments.md, "Where crowds of 128 knot"). Traffic
+// planning spreads them: CrowdRoutes routes each robot over a coarse grid of cells `crowd_cell`
+// wide whose step into a cell costs its length times 1 + crowd_weight x the robots already
+// routed through it per its free area, so a robot whose straight way runs
+// through a crowded middle goes around it when that costs less. Robots are routed one at a time,
+// in index order, each against the routes before it, and again every kCrowdReroute steps (or when
+// pushed off their route or given a new goal), each against everyone else's as they stand then.
+// Only on open ground and for a way of kCrowdMinWay cells or more: a robot whose map route winds
+// (open_ground), or that is near its goal, keeps its map route. Parked robots are not counted:
+// every route must end among them, and counting them sent robots near their goals on detours.
+//   - Coarse cells: each has a point (the free fine cell, clearance >= preferred, nearest its
+//     centre) and an area (its share of fine cells a robot's centre fits in); a step between two
+//     cells is allowed when the segment between their points keeps the route's view clearance.
+//   - Following: a robot heads for the point of the route cell kCrowdAhead cells past the one
+//     nearest it, then for its goal once that is the goal's cell; when the route, as made, strays
+//     less than a cell from the straight way to the goal, for the goal itself (so the route
+//     changes nothing where there is no crowd to go around).
+// Memory: a few floats a coarse cell (at most kCrowdMaxSide^2) and each robot's route cells.
+class CrowdRoutes {
+public:
+    static constexpr int kCrowdMaxSide = 96;   // coarse cells a side (a huge world gets larger cells)
+    static constexpr int kCrowdReroute = 40;   // steps a route is kept before it is made again
+    static constexpr int kCrowdAhead = 2;      // a robot heads this many route cells past its own
+    static constexpr int kCrowdMinWay = 4;     // a robot fewer cells than this from its goal heads for it
+
+    // Where each of the n robots heads (target[i]: goal[i] where its route goes straight there).
+    void update(RouteGuide& guide, const WorldMap& map, const TrafficConfig& p, int n, const Vec2* pos, const Vec2* goal,
+                const char* at_goal, const int* ids, long step, std::vector<Vec2>& target) {
+        set_map(guide, map, p);
+        target.assign(goal, goal + n);
+        // Forget robots gone; then the demand of every remaining route from where its robot is.
+        std::map<int, Route> kept;
+        for (int i = 0; i < n; ++i) {
+            auto it = routes_.find(ids[i]);
+            if (it != routes_.end()) kept.emplace(ids[i], std::move(it->second));
+        }
+        routes_.swap(kept);
+        std::fill(demand_.begin(), demand_.end(), 0.f);
+        index_.assign(n, -1);
+        for (int i = 0; i < n; ++i) {
+            if (at_goal[i]) continue;
+            auto it = routes_.find(ids[i]);
+            if (it == routes_.end()) continue;
+            Route& r = it->second;
+            index_[i] = progress(r, pos[i]);
+            if (index_[i] >= 0) add(r, index_[i], +1);
+        }
+        for (int i = 0; i < n; ++i) {
+            if (at_goal[i]) continue;
+            Route& r = routes_[ids[i]];
+            const bool stale = index_[i] < 0 || !(r.goal == goal[i]) || step < r.made || step - r.made >= kCrowdReroute;
+            if (stale) {
+                if (index_[i] >= 0) add(r, index_[i], -1);
+                if (norm(goal[i] - pos[i]) > kCrowdMinWay * cell_ && open_ground(guide, map, pos[i], goal[i])) route(r, pos[i], goal[i], p.crowd_weight);
+                else r.cells.assign(1, cell_of(goal[i]));  // near, or a winding way: its map route, as without crowds
+                r.goal = goal[i], r.made = step, r.straight = along_straight_way(r, pos[i], goal[i]);
+                index_[i] = 0;
+                add(r, 0, +1);
+            }
+            if (!r.straight && index_[i] + kCrowdAhead < (int)r.cells.size() - 1) target[i] = point_[r.cells[index_[i] + kCrowdAhead]];
+        }
+    }
+    void clear() { routes_.clear(); map_ = WorldMap{}; side_ = 0; }
+
+private:
+    struct Route {
+        Vec2 goal;
+        long made = 0;
+        bool straight = true;    // it keeps within a cell of the straight way to the goal: the robot heads for the goal
+        std::vector<int> cells;  // coarse cells from the robot's to its goal's
+    };
+    WorldMap map_;
+    int side_ = 0;
+    double lo_ = 0, cell_ = 1;
+    std::vector<Vec2> point_;      // per coarse cell: where a route through it passes
+    std::vector<float> area_;      // per coarse cell: the share of it a robot's centre fits in (0: none)
+    std::vector<uint8_t> links_;   // per coarse cell: bit d, the step to neighbour d (kSteps) is clear
+    std::vector<float> demand_;    // per coarse cell: routes through it
+    std::map<int, Route> routes_;  // by robot id
+    std::vector<int> index_;       // per robot of this call: its place on its route (-1: none)
+    std::vector<double> cost_;     // Dijkstra's scratch
+    std::vector<int> from_;
+    static constexpr int kDr[8] = {-1, -1, -1, 0, 0, 1, 1, 1}, kDc[8] = {-1, 0, 1, -1, 1, -1, 0, 1};
+
+    int cell_of(Vec2 q) const {
+        const int col = std::clamp((int)std::floor((q.x - lo_) / cell_), 0, side_ - 1);
+        const int row = std::clamp((int)std::floor((q.y - lo_) / cell_), 0, side_ - 1);
+        return row * side_ + col;
+    }
+    Vec2 centre(int k) const { return {lo_ + (k % side_ + 0.5) * cell_, lo_ + (k / side_ + 0.5) * cell_}; }
+
+    void set_map(RouteGuide& guide, const WorldMap& map, const TrafficConfig& p) {
+        const double h = map.half_size;
+        const double cell = std::max(p.crowd_cell, 2 * h / kCrowdMaxSide);
+        if (side_ > 0 && map == map_ && std::abs(cell - cell_) < 1e-12) return;
+        map_ = map;
+        side_ = std::max(1, (int)std::ceil(2 * h / cell - 1e-9));
+        cell_ = 2 * h / side_;
+        lo_ = -h;
+        routes_.clear();
+        const int cells = side_ * side_;
+        point_.assign(cells, Vec2{});
+        area_.assign(cells, 0.f);
+        links_.assign(cells, 0);
+        demand_.assign(cells, 0.f);
+        const ClearanceGrid& g = guide.grid(map);
+        std::vector<int> fits(cells, 0), all(cells, 0);
+        std::vector<double> best(cells, std::numeric_limits<double>::infinity());
+        for (int k = 0; k < g.n * g.n; ++k) {
+            const Vec2 c = g.centre(k);
+            const int q = cell_of(c);
+            ++all[q];
+            if (g.clear[k] >= p.free_clear) ++fits[q];
+            const double d = norm(c - centre(q));
+            if (g.clear[k] >= guide.clear && d < best[q]) best[q] = d, point_[q] = c;
+        }
+        for (int q = 0; q < cells; ++q) area_[q] = std::isfinite(best[q]) && all[q] > 0 ? (float)fits[q] / all[q] : 0.f;
+        for (int q = 0; q < cells; ++q) {
+            if (area_[q] == 0) continue;
+            const int r = q / side_, c = q % side_;
+            for (int d = 0; d < 8; ++d) {
+                const int r2 = r + kDr[d], c2 = c + kDc[d];
+                if (r2 < 0 || r2 >= side_ || c2 < 0 || c2 >= side_) continue;
+                const int q2 = r2 * side_ + c2;
+                if (area_[q2] > 0 && guide.straight(map, point_[q], point_[q2])) links_[q] |= (uint8_t)(1u << d);
+            }
+        }
+    }
+    // The map route from a to goal is at most kCrowdOpenRatio times the straight way (both in
+    // the grid's 8-direction moves; a narrow cell costs more): a crowd there can be gone around.
+    // A winding way (a maze, rooms, a one-lane passage) keeps its map route and PassageControl's
+    // turns: the coarse cells may miss a one-cell door that the map route goes through.
+    static constexpr double kCrowdOpenRatio = 1.3;
+    bool open_ground(RouteGuide& guide, const WorldMap& map, Vec2 a, Vec2 goal) const {
+        const ClearanceGrid& g = guide.grid(map);
+        const int steps = guide.route_steps(map, a, goal);
+        const double chebyshev = std::max(std::fabs(goal.x - a.x), std::fabs(goal.y - a.y)) / g.cell;
+        return steps < RouteGuide::kRouteUnreachable && steps <= kCrowdOpenRatio * chebyshev + 2 + guide.narrow_cost;  // a robot may stand in one narrow cell
+    }
+    // Adds `sign` to the demand of r's cells from index `from` on.
+    void add(const Route& r, int from, float sign) {
+        for (size_t k = (size_t)from; k < r.cells.size(); ++k) demand_[r.cells[k]] += sign;
+    }
+    // The index of r's cell nearest q among the next few from its last, or -1 when q strayed
+    // more than a cell and a half from all of them (the route is made again).
+    int progress(const Route& r, Vec2 q) const {
+        int best = -1;
+        double best_d = 1.5 * cell_;
+        for (int k = 0; k < (int)r.cells.size(); ++k) {
+            const double d = norm(q - centre(r.cells[k]));
+            if (d <= best_d) best_d = d, best = k;
+        }
+        return best;
+    }
+    // Dijkstra over the coarse cells from a's to goal's: a step costs its length times
+    // 1 + weight x demand / area of the cell stepped into (an area below a quarter counts a quarter).
+    void route(Route& r, Vec2 a, Vec2 goal, double weight) {
+        const int cells = side_ * side_, start = cell_of(a), end = cell_of(goal);
+        cost_.assign(cells, std::numeric_limits<double>::infinity());
+        from_.assign(cells, -1);
+        using Entry = std::pair<double, int>;
+        std::priority_queue<Entry, std::vector<Entry>, std::greater<Entry>> open;
+        cost_[start] = 0;
+        open.push({0, start});
+        while (!open.empty()) {
+            const auto [d, q] = open.top();
+            open.pop();
+            if (d > cost_[q]) continue;
+            if (q == end) break;
+            const int row = q / side_, col = q % side_;
+            for (int k = 0; k < 8; ++k) {
+                if (!(links_[q] >> k & 1u) && q != start) continue;  // the start cell's point may not be where the robot is
+                const int r2 = row + kDr[k], c2 = col + kDc[k];
+                if (r2 < 0 || r2 >= side_ || c2 < 0 || c2 >= side_) continue;
+                const int q2 = r2 * side_ + c2;
+                if (area_[q2] == 0) continue;
+                const double step = norm(point_[q2] - (q == start ? a : point_[q])) * (1 + weight * demand_[q2] / std::max(area_[q2], 0.25f));
+                if (d + step < cost_[q2]) cost_[q2] = d + step, from_[q2] = q, open.push({d + step, q2});
+            }
+        }
+        r.cells.clear();
+        if (!std::isfinite(cost_[end])) {  // no coarse way: the goal's own cell, so the robot heads straight for it
+            r.cells.push_back(end);
+            return;
+        }
+        for (int q = end; q >= 0; q = from_[q]) r.cells.push_back(q);
+        std::reverse(r.cells.begin(), r.cells.end());
+    }
+    // Route r from q keeps within a cell of the straight way to the goal all along. Decided when
+    // the route is made, not every plan: a robot whose heading flipped between its goal and its
+    // route's next point from plan to plan stood between two discs for 250 steps.
+    bool along_straight_way(const Route& r, Vec2 q, Vec2 goal) const {
+        const Vec2 d = goal - q;
+        const double len2 = std::max(dot(d, d), 1e-12);
+        for (int k : r.cells) {
+            const Vec2 c = point_[k];
+            const double t = std::clamp(dot(c - q, d) / len2, 0.0, 1.0);
+            if (norm(q + d * t - c) > cell_) return false;
+        }
+        return true;
+    }
+};
+
 // =============================================================================================
 // Section 9. Moving-window planner (SPEC 8): DiffusionPlanner, make_follower, DecentralisedTeam
 // =============================================================================================
@@ -4706,6 +4926,12 @@ public:
             pos_[i] = a.pos, goal_[i] = a.goal, ids_[i] = a.id, at_goal_[i] = world.at_goal(a);
         }
         now_ = world.t();
+        // Routes around crowds where the team is larger than a scene and the world than the
+        // training world's (where ways are long enough to meet in crowds).
+        if (settings.traffic.crowd_weight > 0 && K < n && world.map().half_size > model_.config.position_scale * (1 + 1e-9))
+            crowds_.update(guide_, world.map(), settings.traffic, n, pos_.data(), goal_.data(), at_goal_.data(), ids_.data(), now_, crowd_target_);
+        else
+            crowd_target_.clear();
         plan_scenes(world.map(), n, K, rule, n);
         for (int i = 0; i < n; ++i) {
             out.ids[i] = ids_[i];
@@ -4754,6 +4980,7 @@ public:
             pos_[i] = others[i - 1].pos, goal_[i] = others[i - 1].goal, ids_[i] = others[i - 1].id;
         for (int i = 0; i < n; ++i) at_goal_[i] = WorldConfig{}.reached(pos_[i], goal_[i]);
         now_ = step;
+        crowd_target_.clear();  // a robot alone routes straight along its map route
         plan_scenes(map, n, std::min(K, n), SceneRule::PerRobot, /*seeds: the robot alone*/ 1);
         // The scene's windows, the robot's (slot 0) and its neighbours': the next plan_robot starts from them.
         const int m = batch_.count[0];
@@ -4798,6 +5025,8 @@ private:
     std::vector<char> at_goal_;
     std::vector<RouteGoal> route_;   // what each is told to head for (route_goal)
     PassageControl passages_;        // traffic.take_turns: the one-lane passages
+    CrowdRoutes crowds_;             // traffic.crowd_weight: routes around crowds
+    std::vector<Vec2> crowd_target_;  // where each robot heads instead of its goal (empty: none)
     std::vector<char> waiting_;      // robots told to wait, and where
     std::vector<Vec2> wait_point_;
     RouteGuide guide_;               // route subgoals (ModelConfig::subgoal_distance)
@@ -4855,9 +5084,16 @@ private:
         route_.resize(n);
         // A waiting robot is routed to its waiting point like to a goal: one that makes way may
         // have the length of a corridor to go.
-        for (int i = 0; i < n; ++i)
-            if (in_scene_[i]) route_[i] = route_goal(guide_, c, map, pos_[i], waiting_[i] == PassageControl::kWait ? wait_point_[i] : goal_[i],
-                                                     waiting_[i] == PassageControl::kGoAround ? passages_.closed_to(i) : ClosedCells{});
+        // A robot routed around a crowd (traffic.crowd_weight) heads for its route's next point as
+        // for a subgoal: that far along the way there, never to stop at it.
+        for (int i = 0; i < n; ++i) {
+            if (!in_scene_[i]) continue;
+            const bool around = !crowd_target_.empty() && waiting_[i] == PassageControl::kGoOn && !(crowd_target_[i] == goal_[i]);
+            const Vec2 head = waiting_[i] == PassageControl::kWait ? wait_point_[i] : around ? crowd_target_[i] : goal_[i];
+            route_[i] = route_goal(guide_, c, map, pos_[i], head, waiting_[i] == PassageControl::kGoAround ? passages_.closed_to(i) : ClosedCells{});
+            const Vec2 d = route_[i].goal - pos_[i];
+            if (around && norm(d) > 1e-9) route_[i] = {pos_[i] + d * ((c.subgoal_distance > 0 ? c.subgoal_distance : kRouteLookahead) / norm(d)), false};
+        }
         // Each neighbourhood scene draws its own noise, seeded by the plan and its seed robot's id.
         const uint64_t plan_seed = local ? rng_.next_u64() : 0;
         if (local) batch_.noise_seed.resize(scenes);

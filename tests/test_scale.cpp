@@ -118,3 +118,63 @@ TEST_CASE("scale: the planner's workspace is bounded by its chunks, linear in th
     planner.settings.workspace.chunk_scenes = 0;
     CHECK_THROWS_WITH_AS(planner.plan(w), doctest::Contains("workspace.chunk_scenes"), std::invalid_argument);
 }
+
+namespace {
+// CrowdRoutes' targets for robots 0..n-1 in an empty world of half-size 4.8.
+std::vector<Vec2> crowd_targets(const std::vector<Vec2>& pos, const std::vector<Vec2>& goal, double weight, long step = 0,
+                                CrowdRoutes* routes = nullptr) {
+    CrowdRoutes own;
+    CrowdRoutes& cr = routes ? *routes : own;
+    RouteGuide guide;
+    WorldMap map;
+    map.half_size = 4.8;
+    TrafficConfig traffic;
+    traffic.crowd_weight = weight;
+    const int n = (int)pos.size();
+    std::vector<char> at_goal(n, 0);
+    std::vector<int> ids(n);
+    for (int i = 0; i < n; ++i) ids[i] = 10 + i;
+    std::vector<Vec2> target;
+    cr.update(guide, map, traffic, n, pos.data(), goal.data(), at_goal.data(), ids.data(), step, target);
+    return target;
+}
+}  // namespace
+
+TEST_CASE("crowds: a robot whose straight way runs through others' routes goes around them, and only then") {
+    // 24 robots cross the world west to east near y = 0, routed first; the last one crosses there too.
+    std::vector<Vec2> pos, goal;
+    for (int k = 0; k < 24; ++k) pos.push_back({-4.0, -0.25 + 0.02 * k}), goal.push_back({4.0, -0.25 + 0.02 * k});
+    pos.push_back({-4.0, 0.0}), goal.push_back({4.0, 0.0});
+    const std::vector<Vec2> around = crowd_targets(pos, goal, 0.5);
+    CHECK(around[0] == goal[0]);                       // the first robot routed has the world to itself
+    CHECK(std::fabs(around.back().y) > 0.3);           // the last goes around the lane the others fill
+    CHECK(around.back().x > pos.back().x);              // still on its way east
+    const std::vector<Vec2> straight = crowd_targets(pos, goal, 1e-6);
+    for (size_t i = 0; i < pos.size(); ++i) CHECK(straight[i] == goal[i]);  // no crowd worth a detour: every robot heads for its goal
+    // The same inputs give the same targets (routes depend on positions, goals, ids and the step only).
+    CHECK(crowd_targets(pos, goal, 0.5) == around);
+    // Kept between calls: a robot keeps its route as it goes along it, until kCrowdReroute steps pass.
+    CrowdRoutes routes;
+    crowd_targets(pos, goal, 0.5, 0, &routes);
+    std::vector<Vec2> moved = pos;
+    moved.back() = around.back();
+    const std::vector<Vec2> later = crowd_targets(moved, goal, 0.5, 8, &routes);
+    CHECK(later.back().x > around.back().x);  // the next point along the same detour
+    CHECK(std::fabs(later.back().y) > 0.3);
+}
+
+TEST_CASE("crowds: routes around crowds leave a team that fits one scene as it was, and plan a larger one") {
+    auto plan_with = [](double weight, int n) {
+        DiffusionPlanner planner(MadbpModel(tiny_config(), 3), 17);  // K = n_max = 6
+        planner.settings.traffic.crowd_weight = weight;
+        World w = make_random_world("obstacles", n, 5, default_half_size(n) + 1.0);
+        Plan first = planner.plan(w);
+        for (int k = 0; k < 4; ++k) w.step(std::vector<Vec2>(w.size(), Vec2{0.2, 0.1}));
+        return std::make_pair(first, planner.plan(w));
+    };
+    const auto off = plan_with(0, 6), on = plan_with(0.5, 6);
+    for (int i = 0; i < 6; ++i) CHECK(off.second.waypoints[i] == on.second.waypoints[i]);
+    const auto crowd = plan_with(0.5, 24);
+    for (const auto& window : crowd.second.waypoints)
+        for (Vec2 p : window) REQUIRE(std::isfinite(p.x + p.y));
+}
