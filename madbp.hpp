@@ -4628,13 +4628,12 @@ public:
                 const char* at_goal, const int* ids, long step, std::vector<Vec2>& target) {
         set_map(guide, map, p);
         target.assign(goal, goal + n);
-        // Forget robots gone; then the demand of every remaining route from where its robot is.
-        std::map<int, Route> kept;
-        for (int i = 0; i < n; ++i) {
-            auto it = routes_.find(ids[i]);
-            if (it != routes_.end()) kept.emplace(ids[i], std::move(it->second));
-        }
-        routes_.swap(kept);
+        // Forget robots gone (without allocating: plans in a steady state allocate nothing); then
+        // the demand of every remaining route from where its robot is.
+        present_.assign(ids, ids + n);
+        std::sort(present_.begin(), present_.end());
+        for (auto it = routes_.begin(); it != routes_.end();)
+            it = std::binary_search(present_.begin(), present_.end(), it->first) ? std::next(it) : routes_.erase(it);
         std::fill(demand_.begin(), demand_.end(), 0.f);
         index_.assign(n, -1);
         for (int i = 0; i < n; ++i) {
@@ -4660,7 +4659,6 @@ public:
             if (!r.straight && index_[i] + kCrowdAhead < (int)r.cells.size() - 1) target[i] = point_[r.cells[index_[i] + kCrowdAhead]];
         }
     }
-    void clear() { routes_.clear(); map_ = WorldMap{}; side_ = 0; }
 
 private:
     struct Route {
@@ -4674,12 +4672,14 @@ private:
     double lo_ = 0, cell_ = 1;
     std::vector<Vec2> point_;      // per coarse cell: where a route through it passes
     std::vector<float> area_;      // per coarse cell: the share of it a robot's centre fits in (0: none)
-    std::vector<uint8_t> links_;   // per coarse cell: bit d, the step to neighbour d (kSteps) is clear
+    std::vector<uint8_t> links_;   // per coarse cell: bit d, the step to neighbour d (kDr, kDc) is clear
     std::vector<float> demand_;    // per coarse cell: routes through it
     std::map<int, Route> routes_;  // by robot id
     std::vector<int> index_;       // per robot of this call: its place on its route (-1: none)
-    std::vector<double> cost_;     // Dijkstra's scratch
+    std::vector<int> present_;     // this call's ids, sorted
+    std::vector<double> cost_;     // Dijkstra's scratch: costs, the cell each came from, the heap
     std::vector<int> from_;
+    std::vector<std::pair<double, int>> heap_;
     static constexpr int kDr[8] = {-1, -1, -1, 0, 0, 1, 1, 1}, kDc[8] = {-1, 0, 1, -1, 1, -1, 0, 1};
 
     int cell_of(Vec2 q) const {
@@ -4758,13 +4758,13 @@ private:
         const int cells = side_ * side_, start = cell_of(a), end = cell_of(goal);
         cost_.assign(cells, std::numeric_limits<double>::infinity());
         from_.assign(cells, -1);
-        using Entry = std::pair<double, int>;
-        std::priority_queue<Entry, std::vector<Entry>, std::greater<Entry>> open;
+        const auto later = std::greater<std::pair<double, int>>();  // a min-heap
+        heap_.assign(1, {0.0, start});
         cost_[start] = 0;
-        open.push({0, start});
-        while (!open.empty()) {
-            const auto [d, q] = open.top();
-            open.pop();
+        while (!heap_.empty()) {
+            std::pop_heap(heap_.begin(), heap_.end(), later);
+            const auto [d, q] = heap_.back();
+            heap_.pop_back();
             if (d > cost_[q]) continue;
             if (q == end) break;
             const int row = q / side_, col = q % side_;
@@ -4775,7 +4775,11 @@ private:
                 const int q2 = r2 * side_ + c2;
                 if (area_[q2] == 0) continue;
                 const double step = norm(point_[q2] - (q == start ? a : point_[q])) * (1 + weight * demand_[q2] / std::max(area_[q2], 0.25f));
-                if (d + step < cost_[q2]) cost_[q2] = d + step, from_[q2] = q, open.push({d + step, q2});
+                if (d + step < cost_[q2]) {
+                    cost_[q2] = d + step, from_[q2] = q;
+                    heap_.push_back({d + step, q2});
+                    std::push_heap(heap_.begin(), heap_.end(), later);
+                }
             }
         }
         r.cells.clear();
