@@ -4741,8 +4741,8 @@ private:
     void add(const Route& r, int from, float sign) {
         for (size_t k = (size_t)from; k < r.cells.size(); ++k) demand_[r.cells[k]] += sign;
     }
-    // The index of r's cell nearest q among the next few from its last, or -1 when q strayed
-    // more than a cell and a half from all of them (the route is made again).
+    // The index of r's cell whose centre is nearest q, or -1 when q strayed more than a cell and
+    // a half from all of them (the route is made again).
     int progress(const Route& r, Vec2 q) const {
         int best = -1;
         double best_d = 1.5 * cell_;
@@ -4792,7 +4792,7 @@ private:
     }
     // Route r from q keeps within a cell of the straight way to the goal all along. Decided when
     // the route is made, not every plan: a robot whose heading flipped between its goal and its
-    // route's next point from plan to plan stood between two discs for 250 steps.
+    // route's next point from plan to plan stood between two discs for 290 steps.
     bool along_straight_way(const Route& r, Vec2 q, Vec2 goal) const {
         const Vec2 d = goal - q;
         const double len2 = std::max(dot(d, d), 1e-12);
