@@ -116,8 +116,8 @@
 //        PassageControl::follow_order: the robots going one way through a passage, in a line
 //        from the front; passage_traffic() has the expert plan each after the one ahead of it.
 //        expert_traffic(): passage_traffic()'s default, the planner's turns with spare 0.1.
-//        CrowdRoutes, traffic.crowd_weight and crowd_cell: in a team larger than a scene, robots
-//        are routed around the crowds the others' routes make (issue 47).
+//        CrowdRoutes, traffic.crowd_weight (off by default) and crowd_cell: in a team larger than
+//        a scene, robots are routed around the crowds the others' routes make (issue 47).
 //   0.3  PlannerConfig: every planner setting in one struct, its defaults written once.
 //        PlannerConfig::tuned() (the default) and paper() (the paper's planner) presets.
 //        planner_settings(): one table behind validate(), set(), --set and --list-settings.
@@ -3464,9 +3464,10 @@ struct TrafficConfig {
                                    // robot already going that side, is shortest (0: all the shortest way)
     // Routes around crowds (CrowdRoutes), in a team larger than a scene in a world larger than the
     // training world: a coarse cell's step costs 1 + crowd_weight x the robots routed through it
-    // per its free area (0: every robot heads straight along its map route). Tuned on obstacles 128 and 64, seeds 1050-1099 and 1000-1049
+    // per its free area (0, the default: every robot heads straight along its map route). 0.04
+    // lifts obstacles 128 from .88 to .94 but costs at 64 and 256 robots, so it is an option
     // (docs/experiments.md, "Routes around crowds").
-    double crowd_weight = 0.04;
+    double crowd_weight = 0;
     double crowd_cell = 0.6;       // the coarse cells' side, world units
 };
 
@@ -3539,7 +3540,6 @@ struct PlannerConfig {
         p.guidance.priority = 1;
         p.traffic.take_turns = false;
         p.traffic.passage_replan = 0;
-        p.traffic.crowd_weight = 0;
         p.follower.priority_weight = 1;
         p.follower.lookahead = 0;
         p.follower.replan_error = 0;
