@@ -4610,7 +4610,8 @@ inline ExpertTraffic passage_traffic(const TrafficConfig& traffic = expert_traff
 // every route must end among them, and counting them sent robots near their goals on detours.
 //   - Coarse cells: each has a point (the free fine cell, clearance >= preferred, nearest its
 //     centre) and an area (its share of fine cells a robot's centre fits in); a step between two
-//     cells is allowed when the segment between their points keeps the route's view clearance.
+//     cells is allowed when the segment between their points crosses only cells with the
+//     preferred clearance (RouteGuide::straight).
 //   - Following: a robot heads for the point of the route cell kCrowdAhead cells past the one
 //     nearest it, then for its goal once that is the goal's cell; when the route, as made, strays
 //     less than a cell from the straight way to the goal, for the goal itself (so the route

@@ -1,5 +1,6 @@
 // Planning large teams (issue 47): scenes that cover the team, sampled in chunks on threads with
-// the same results on any number of them, in a bounded workspace (madbp.hpp Section 9).
+// the same results on any number of them, in a bounded workspace (madbp.hpp Section 9); routes
+// around crowds (CrowdRoutes, Section 8).
 #include <doctest/doctest.h>
 
 #include "madbp.hpp"
