@@ -2011,12 +2011,16 @@ inline void encode_map(SceneBatch& batch, int scene, const WorldMap& map, const 
 // even without subgoal_distance (D = kRouteLookahead then).
 // (The MAPPO and MADiff baselines may be told the same, with their own D: madbp_train.hpp.)
 constexpr double kRouteLookahead = 0.8;
+// The subgoal D from pos towards `toward` (not at pos): "keep going this way", never "stop here".
+inline RouteGoal subgoal_towards(Vec2 pos, Vec2 toward, double D) {
+    const Vec2 d = toward - pos;
+    return {pos + d * (D / norm(d)), false};
+}
 inline RouteGoal route_goal(RouteGuide& guide, double D, const WorldMap& map, Vec2 pos, Vec2 goal, ClosedCells closed = {}) {
     if (D <= 0 || (norm(goal - pos) <= D && guide.in_view(map, pos, goal, closed))) return {goal, true};
     const RouteGoal next = guide.subgoal(map, pos, goal, std::min(D, kRouteLookahead), closed);
-    const Vec2 d = next.goal - pos;
-    if (norm(d) < 1e-9) return {goal, true};  // no direction: the goal itself
-    return {pos + d * (D / norm(d)), false};
+    if (norm(next.goal - pos) < 1e-9) return {goal, true};  // no direction: the goal itself
+    return subgoal_towards(pos, next.goal, D);
 }
 inline RouteGoal route_goal(RouteGuide& guide, const ModelConfig& c, const WorldMap& map, Vec2 pos, Vec2 goal,
                             ClosedCells closed = {}) {
@@ -5096,8 +5100,8 @@ private:
             const bool around = !crowd_target_.empty() && waiting_[i] == PassageControl::kGoOn && !(crowd_target_[i] == goal_[i]);
             const Vec2 head = waiting_[i] == PassageControl::kWait ? wait_point_[i] : around ? crowd_target_[i] : goal_[i];
             route_[i] = route_goal(guide_, c, map, pos_[i], head, waiting_[i] == PassageControl::kGoAround ? passages_.closed_to(i) : ClosedCells{});
-            const Vec2 d = route_[i].goal - pos_[i];
-            if (around && norm(d) > 1e-9) route_[i] = {pos_[i] + d * ((c.subgoal_distance > 0 ? c.subgoal_distance : kRouteLookahead) / norm(d)), false};
+            if (around && norm(route_[i].goal - pos_[i]) > 1e-9)
+                route_[i] = subgoal_towards(pos_[i], route_[i].goal, c.subgoal_distance > 0 ? c.subgoal_distance : kRouteLookahead);
         }
         // Each neighbourhood scene draws its own noise, seeded by the plan and its seed robot's id.
         const uint64_t plan_seed = local ? rng_.next_u64() : 0;
