@@ -42,6 +42,8 @@
 //        ExpertHeading::after: a robot is planned right after the one it follows (a line
 //        through a one-lane aisle is planned from the front).
 //        EvalResult::failed_seeds: the seeds of the episodes that failed.
+//        ExpertParams::stall_steps (150): a robot no nearer its goal for that long plans first,
+//        in an order drawn afresh every stall_steps (deadlocks at doorways; 0: fixed priorities).
 //   0.3  PassageControl and its parameters move to madbp.hpp (the planner's traffic conventions).
 //        ClearanceGrid moves to Section 2; ReachGrid is gone (detail::all_reachable on its layout).
 //        movingai_scene / load_movingai_scene: MovingAI MAPF benchmark maps and scenarios as scenes.
@@ -2264,7 +2266,8 @@ struct LinePlanner {
     }
 };
 
-// Priorities of the guided expert and the plan follower (one rule for both): robots still
+// Priorities of the guided expert and the plan follower (one rule for both; the expert puts
+// robots that have stalled first, ExpertParams::stall_steps): robots still
 // travelling go before robots at their goals, then the larger `key` (how far the robot had to go
 // when first seen), then the lower id. `order` receives 0 .. n-1, first first.
 template <class AtGoal, class Key, class Id>
@@ -3277,7 +3280,10 @@ private:
 //     and the reservations (robots x steps x (hold + 2) centres, detail::Reservations).
 // Priorities: agents still travelling before agents that have arrived (those step aside and
 // come back), then the longer route cost at the start first, then the id; robots that give way
-// (ExpertHeading::gives_way) after all others. The plan is tracked with the SPEC 3.2 tracker and
+// (ExpertHeading::gives_way) after all others. A robot whose route cost has not fallen for
+// stall_steps goes before the rest, the stalled ones in an order drawn (from id and how many
+// stall_steps it has waited) afresh every stall_steps: fixed priorities can hold robots nose
+// to nose at a doorway for good (room-64-64-8, docs/design.md "Guided expert"). The plan is tracked with the SPEC 3.2 tracker and
 // made safe by the safety filter, in which a higher-priority agent weighs more (deviates less;
 // lower ones make way).
 // Traffic: soft reservations do not settle two robots meeting head-on in a one-lane aisle (each
@@ -3308,6 +3314,7 @@ struct ExpertParams {
     int extra_horizon = 20;       // plans may run this many steps past the episode's step limit, [0, kExpertMaxHorizon]
     int max_expansions = 200000;  // A* budget per agent and plan, >= 1 (its memory: <= ~56 bytes per expansion)
     double priority_weight = 4;   // safety-filter weight of the highest-priority agent (the lowest has 1), >= 1
+    int stall_steps = 150;        // a robot no nearer its goal for this many steps plans first (0: never), >= 0
     TrackerParams tracker;
     SafetyFilterParams filter;
     RouteClearance route() const { return {min_clear, inflate, narrow_cost}; }
@@ -3322,6 +3329,7 @@ public:
             throw std::invalid_argument("ExpertParams.extra_horizon: must be in [0, kExpertMaxHorizon = " + std::to_string(kExpertMaxHorizon) + "]");
         if (prm_.max_expansions < 1) throw std::invalid_argument("ExpertParams.max_expansions: must be >= 1");
         if (prm_.hold < 0) throw std::invalid_argument("ExpertParams.hold: must be >= 0");
+        if (prm_.stall_steps < 0) throw std::invalid_argument("ExpertParams.stall_steps: must be >= 0 (got " + std::to_string(prm_.stall_steps) + ")");
         if (!(prm_.give_way_buffer >= 0 && prm_.give_way_buffer <= 1))
             throw std::invalid_argument("ExpertParams.give_way_buffer: must be in [0, 1] world units (got " + number_text(prm_.give_way_buffer) + ")");
         prm_.route().check("ExpertParams");
@@ -3369,6 +3377,8 @@ private:
     std::vector<ExpertHeading> heading_;      // per agent, this plan
     RouteGuide guide_;                        // grid and wavefronts (shared representation, Section 12)
     std::map<int, int> initial_steps_;        // agent id -> route cost from its start
+    struct Progress { int best = 0, since = -1; };  // the least route cost yet, and the step it was reached
+    std::map<int, Progress> progress_;        // agent id -> its progress (stall_steps)
     Plan plan_;
     std::vector<int> rank_;                   // per plan entry: 0 = highest priority
     int plan_t0_ = 0, plans_ = 0;
@@ -3416,7 +3426,20 @@ private:
         for (int i = 0; i < n; ++i)
             if (!initial_steps_.count(ag[i].id)) initial_steps_[ag[i].id] = route_cost(world.map(), ag[i].pos, ag[i].goal);
         std::vector<int> order;
-        priority_order(world, [&](const Agent& a) { return (double)initial_steps_[a.id]; }, order);
+        // Robots no nearer their goals for stall_steps go first, in an order drawn afresh every
+        // stall_steps: with fixed priorities two robots nose to nose at a doorway stay so.
+        for (int i = 0; i < n; ++i) {
+            Progress& p = progress_[ag[i].id];
+            const bool arrived = world.at_goal(ag[i]);
+            const int cost = arrived ? 0 : route_cost(world.map(), ag[i].pos, ag[i].goal);
+            if (p.since < 0 || arrived || cost < p.best) p.best = cost, p.since = world.t();
+        }
+        auto key = [&](const Agent& a) {
+            const long stalls = prm_.stall_steps > 0 ? (world.t() - progress_[a.id].since) / prm_.stall_steps : 0;
+            if (stalls == 0) return (double)initial_steps_[a.id];
+            return 1e9 + (double)(Rng((uint64_t)a.id << 32 ^ (uint64_t)stalls).next_u64() >> 40);
+        };
+        priority_order(world, key, order);
         heading_.resize(n);
         for (int i = 0; i < n; ++i) heading_[i] = ExpertHeading{ag[i].goal, {}, false};
         if (traffic_) {

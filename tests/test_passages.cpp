@@ -679,6 +679,36 @@ TEST_CASE("passages: follow_order lines robots up through a corridor, the one fa
     CHECK(ahead == std::vector<int>{1, 3, 0, -1, -1});  // 2 after 0 after 1 after 3; 4 in no line
 }
 
+TEST_CASE("expert: a robot no nearer its goal for stall_steps plans first, which ends a deadlock at a doorway") {
+    // room-64-64-8 at cell 0.25, seed 30 with 32 robots (results/maps, 2026-12-03), at step 600
+    // of the expert's run, the robots parked away from the one-cell door at map cell (45, 16)
+    // left out: robot 3 in the door bound north, 4 below it bound north, 1 above it bound
+    // south. With fixed priorities they stand nose to nose to the end; with robots that have
+    // stalled planned first, in an order drawn afresh every stall_steps, one backs out.
+    const MovingAiMap room = load_movingai_map("maps/movingai/room-64-64-8.map");
+    Scene scene = movingai_scene(room, random_movingai_scenario(room, 1, 0), "random", 1, 0.25);  // the map at cell 0.25
+    scene.starts = {{-1.098, 6.886}, {3.412, 3.639}, {2.467, -1.639}, {3.369, 4.134}, {3.369, 3.904}, {-1.629, 5.968}};
+    scene.goals = {{-0.375, 7.625}, {-0.875, 7.375}, {7.375, -7.875}, {-2.625, 0.625}, {-2.625, 6.875}, {-1.625, 5.625}};
+    auto run = [&](int stall_steps) {
+        WorldConfig wc;
+        wc.max_steps = 500;
+        World w = make_world(scene, wc);
+        ExpertParams ep;
+        ep.stall_steps = stall_steps;
+        GuidedExpert expert(w.map(), ep, passage_traffic());
+        return run_episode(w, expert);
+    };
+    CHECK(ExpertParams{}.stall_steps == 150);
+    const EpisodeResult rotated = run(150);
+    CHECK(rotated.success);
+    CHECK(rotated.collisions() == 0);
+    CHECK(rotated.steps < 450);  // 420 when measured
+    CHECK_FALSE(run(0).success);  // fixed priorities: the scene needs the rule
+    ExpertParams bad;
+    bad.stall_steps = -1;
+    CHECK_THROWS_WITH_AS(GuidedExpert(scene.map, bad), doctest::Contains("ExpertParams.stall_steps"), std::invalid_argument);
+}
+
 TEST_CASE("expert: robots in a line through a corridor are planned from the front, so the one ahead goes on") {
     // Four robots in a line going up a one-lane corridor, those behind with the longer routes,
     // so the expert's priorities plan them first: planned before the robot ahead, each routes
