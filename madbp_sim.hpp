@@ -3283,9 +3283,9 @@ private:
 // (ExpertHeading::gives_way) after all others. A robot whose route cost has not fallen for
 // stall_steps goes before the rest, the stalled ones in an order drawn (from id and how many
 // stall_steps it has waited) afresh every stall_steps: fixed priorities can hold robots nose
-// to nose at a doorway for good (room-64-64-8, docs/design.md "Guided expert"). The plan is tracked with the SPEC 3.2 tracker and
-// made safe by the safety filter, in which a higher-priority agent weighs more (deviates less;
-// lower ones make way).
+// to nose at a doorway for good (room-64-64-8, docs/design.md "Guided expert"). The plan is
+// tracked with the SPEC 3.2 tracker and made safe by the safety filter, in which a
+// higher-priority agent weighs more (deviates less; lower ones make way).
 // Traffic: soft reservations do not settle two robots meeting head-on in a one-lane aisle (each
 // plan sends both in, the filter holds them nose to nose). An ExpertTraffic rule may, before each
 // plan, send a robot elsewhere than its goal: madbp.hpp's passage_traffic() gives the expert the
@@ -3426,8 +3426,7 @@ private:
         for (int i = 0; i < n; ++i)
             if (!initial_steps_.count(ag[i].id)) initial_steps_[ag[i].id] = route_cost(world.map(), ag[i].pos, ag[i].goal);
         std::vector<int> order;
-        // Robots no nearer their goals for stall_steps go first, in an order drawn afresh every
-        // stall_steps: with fixed priorities two robots nose to nose at a doorway stay so.
+        // Stalled robots first (stall_steps; see the class comment).
         for (int i = 0; i < n; ++i) {
             Progress& p = progress_[ag[i].id];
             const bool arrived = world.at_goal(ag[i]);

@@ -681,8 +681,8 @@ TEST_CASE("passages: follow_order lines robots up through a corridor, the one fa
 
 TEST_CASE("expert: a robot no nearer its goal for stall_steps plans first, which ends a deadlock at a doorway") {
     // room-64-64-8 at cell 0.25, seed 30 with 32 robots (results/maps, 2026-12-03), at step 600
-    // of the expert's run, the robots parked away from the one-cell door at map cell (45, 16)
-    // left out: robot 3 in the door bound north, 4 below it bound north, 1 above it bound
+    // of the expert's run, robots parked more than 1 from the one-cell door at (3.375, 3.875)
+    // left out: robot 4 in the door bound north, 1 below it bound north, 3 above it bound
     // south. With fixed priorities they stand nose to nose to the end; with robots that have
     // stalled planned first, in an order drawn afresh every stall_steps, one backs out.
     const MovingAiMap room = load_movingai_map("maps/movingai/room-64-64-8.map");
