@@ -118,6 +118,10 @@
 //        expert_traffic(): passage_traffic()'s default, the planner's turns with spare 0.1.
 //        CrowdRoutes, traffic.crowd_weight (off by default) and crowd_cell: in a team larger than
 //        a scene, robots are routed around the crowds the others' routes make (issue 47).
+//        traffic.pocket_order (the expert's default; off for the planner): a robot whose goal
+//        would close off a pocket (a dead end) that another's route enters or leaves waits beside
+//        it until that robot is through. follow_order: a robot going on to a goal in a passage
+//        follows the robot ahead of it there that goes deeper.
 //   0.3  PlannerConfig: every planner setting in one struct, its defaults written once.
 //        PlannerConfig::tuned() (the default) and paper() (the paper's planner) presets.
 //        planner_settings(): one table behind validate(), set(), --set and --list-settings.
@@ -3449,6 +3453,7 @@ struct TrafficConfig {
     bool take_turns = true;        // robots that would meet head-on in a one-lane passage take turns (false: each heads for its goal)
     bool make_way = true;          // a robot parked in a passage leaves it ahead of a robot passing through (PassageControl)
     bool queue_in_order = true;    // a robot behind one queueing at a mouth queues too, though it would enter after the holder left
+    bool pocket_order = false;     // a robot whose goal would close off a pocket (a dead end) others' routes enter waits beside it until they pass (the expert: true)
     int passage_replan = 4;        // while robots may meet in a passage, a plan asks to be replaced after this many steps (0: never)
     double one_lane_width = 0.47;  // passages narrower than this, wall to wall, are one-lane (on the grid: 0.45 always, 0.50 never)
     // A robot's centre fits where the clearance is >= this: RouteClearance::min, so a 0.25-wide
@@ -3669,6 +3674,8 @@ inline const std::vector<PlannerSetting>& planner_settings() {
          +[](C& c) -> bool& { return c.traffic.make_way; }},
         {"traffic.queue_in_order", 0, 1, "a robot behind one queueing at a passage's mouth queues too", nullptr, 0,
          +[](C& c) -> bool& { return c.traffic.queue_in_order; }},
+        {"traffic.pocket_order", 0, 1, "a robot whose goal would close off a pocket (a dead end) that others' routes enter waits beside it until they pass", nullptr, 0,
+         +[](C& c) -> bool& { return c.traffic.pocket_order; }},
         {"traffic.passage_replan", 0, 1000, "while robots may meet in a passage, replan after this many steps (0 = off)", nullptr, 0,
          +[](C& c) -> int& { return c.traffic.passage_replan; }},
         {"traffic.one_lane_width", 0, 100, "passages narrower than this, wall to wall, are one-lane", nullptr, 0,
@@ -3802,9 +3809,20 @@ inline void PlannerConfig::set(const std::string& name, const std::string& text)
 //     pass queues until it has.
 //   - Queues keep their order (queue_in_order): at a passage with no way around, when a claim
 //     from a mouth waits, every claim from that mouth waits, since none can pass the first.
-// Memory: a few grids (one of them the walk lengths from a mouth, for queues), plus two cell
-// lists per avoidable passage (its sides); per call, the claims' route cells in their passages
-// and a few cells per plug.
+//   - Goals that close off a pocket (pocket_order): a robot parked at its goal in a one-lane
+//     place (the dead ends PassageControl does not count as passages) stands in the way of a
+//     robot whose route goes past it into the space behind, or out of it, and in a dead end the
+//     two cannot swap. A goal closes off a pocket for a route that comes within two radii
+//     (2 free_clear) of it when, with that disc closed, the free cells on one side of it, the
+//     route's end or its start, number fewer than a square 2 bypass wide. Its robot, unless
+//     already waiting, waits (kWait) at the free cell nearest its goal by walk, within
+//     lookahead + wait_side + free_clear of it and out of the pockets, that keeps
+//     wait_side + free_clear from the goal, from those routes and from the spots given to
+//     others: so a dead end fills from its far end (maze-32-32-4, seed 38 at cell 0.25).
+// Memory: a few grids (one of them the walk lengths from a mouth, for queues; with pocket_order
+// two more of ints), plus two cell lists per avoidable passage (its sides); per call, the claims'
+// route cells in their passages and a few cells per plug, and with pocket_order every travelling
+// robot's whole route.
 // Claims are made afresh at every call from positions, goals and ids alone, so robots that plan
 // for themselves with the same information reach the same decision.
 class PassageControl {
@@ -3842,6 +3860,153 @@ public:
     enum Turn : char { kGoOn = 0, kWait = 1, kGoAround = 2 };
     int arbitrate(RouteGuide& guide, const WorldMap& map, int n, const Vec2* pos, const Vec2* goal, const char* at_goal,
                   std::vector<char>& wait, std::vector<Vec2>& point, const int* ids = nullptr, const char* asked = nullptr) {
+        int waiting = take_turns(guide, map, n, pos, goal, at_goal, wait, point, ids, asked);
+        if (params.pocket_order) waiting += order_pockets(guide, map, n, pos, goal, at_goal, wait, point);
+        // follow_order: who each robot going on to a goal in a passage follows.
+        parker_ahead_.assign(n, -1);
+        auto depth = [&](const Claim& c) { return c.entry > 0 ? -c.entry * cell_ : norm(pos[c.robot] - mouths_[c.mouth].at); };
+        for (const Claim& c : claims_) {
+            if (!c.parks || wait[c.robot] != kGoOn) continue;
+            const Claim* next = nullptr;
+            for (const Claim& d : claims_)
+                if (d.robot != c.robot && d.passage == c.passage && d.mouth == c.mouth && wait[d.robot] == kGoOn && depth(d) > depth(c) &&
+                    (!next || depth(d) < depth(*next)) && passes(guide.grid(), d, goal[d.robot], goal[c.robot]))
+                    next = &d;
+            if (next) parker_ahead_[c.robot] = next->robot;
+        }
+        return waiting;
+    }
+    // Whether the last arbitrate() saw claims on one passage from two of its mouths, or sent a
+    // parked robot out ahead of a holder (robots that may meet in it), of the passages it decided.
+    bool contested() const {
+        if (made_way_) return true;
+        for (size_t a = 0; a < claims_.size(); ++a)
+            for (size_t b = 0; b < a; ++b)
+                if (claims_[a].passage == claims_[b].passage && claims_[a].mouth != claims_[b].mouth) return true;
+        return false;
+    }
+    // Who follows whom through a passage, from the last arbitrate() (its `turn` and `pos`):
+    // ahead[i], the robot directly ahead of robot i in one line through its passage, or -1. A
+    // line: the claims going on into (or through) a passage by one mouth, the one farthest in
+    // first (robots in it by their distance from that mouth, then those outside by how near they
+    // are), headed by the parked robots sent out ahead of them (make_way), the farthest first.
+    // A robot follows one that goes on past `lookahead` and is in the passage or follows (one
+    // outside a line can step aside; one about to arrive is better planned after the robots
+    // that pass its goal, which it then makes way for, as the expert's priorities have it: the
+    // corridor interaction scene). A robot parking in the passage follows the nearest robot
+    // ahead of it, in by its mouth, that passes its goal, or no one. A robot going on
+    // by another mouth than the holder's (it enters once the holder is `spare` out) follows the
+    // holder. A planner that plans robots one after another (the guided expert) plans each after
+    // the one it follows: planned first, a robot behind routes through the one ahead in a
+    // one-lane aisle, which then cannot go on, and one coming in by the far mouth sends the
+    // holder back out (docs/experiments.md, "The expert's line through an aisle").
+    void follow_order(const std::vector<char>& turn, const Vec2* pos, std::vector<int>& ahead) const {
+        ahead.assign(turn.size(), -1);
+        auto depth = [&](const Claim& c) { return c.entry > 0 ? -c.entry * cell_ : norm(pos[c.robot] - mouths_[c.mouth].at); };
+        line_.clear();
+        for (int k = 0; k < (int)claims_.size(); ++k)
+            if (!claims_[k].parks && turn[claims_[k].robot] == kGoOn) line_.push_back(k);
+        // By passage and mouth, then the farthest in first: each line from its head.
+        std::sort(line_.begin(), line_.end(), [&](int a, int b) {
+            const Claim &x = claims_[a], &y = claims_[b];
+            if (x.passage != y.passage || x.mouth != y.mouth) return std::tie(x.passage, x.mouth) < std::tie(y.passage, y.mouth);
+            return depth(x) != depth(y) ? depth(x) > depth(y) : x.robot < y.robot;
+        });
+        bool followed = false;  // the robot before in the line is followed
+        for (size_t k = 0; k < line_.size(); ++k) {
+            const Claim& c = claims_[line_[k]];
+            const bool head = k == 0 || claims_[line_[k - 1]].passage != c.passage || claims_[line_[k - 1]].mouth != c.mouth;
+            if (head) {  // it follows the robots sent out ahead of it, the nearest last
+                for (int last = c.robot;;) {
+                    int nearest = -1;
+                    const double beyond = last == c.robot ? -1 : norm(pos[last] - pos[c.robot]);
+                    for (const SentOut& o : sent_out_)
+                        if (o.passage == c.passage && o.mouth == c.mouth && norm(pos[o.robot] - pos[c.robot]) > beyond &&
+                            (nearest < 0 || norm(pos[o.robot] - pos[c.robot]) < norm(pos[nearest] - pos[c.robot])))
+                            nearest = o.robot;
+                    if (nearest < 0) break;
+                    ahead[last] = nearest;
+                    last = nearest;
+                }
+            } else if (followed) {
+                ahead[c.robot] = claims_[line_[k - 1]].robot;
+            }
+            followed = !c.arrives && (c.entry == 0 || ahead[c.robot] >= 0);
+        }
+        for (int k : line_) {  // going on by another mouth than the holder's: after the holder
+            const Claim& c = claims_[k];
+            const int h = holder_[c.passage];
+            if (ahead[c.robot] < 0 && h >= 0 && claims_[h].mouth != c.mouth) ahead[c.robot] = claims_[h].robot;
+        }
+        // Going on to a goal in the passage: after the nearest robot ahead of it there that passes
+        // its goal (planned first, it routes through that robot, which then steps back to let it
+        // by in a one-lane aisle, and the two creep: maze-32-32-4, seed 87 at cell 0.25).
+        for (const Claim& c : claims_)
+            if (c.parks && turn[c.robot] == kGoOn && c.robot < (int)parker_ahead_.size()) ahead[c.robot] = parker_ahead_[c.robot];
+    }
+    // The cells robot i of the last arbitrate() keeps out of (its passage's; none unless it goes around).
+    ClosedCells closed_to(int i) const {
+        if (i < 0 || i >= (int)around_.size() || around_[i] < 0) return {};
+        if (around_side_[i] >= 0) return side_cells(around_[i], around_side_[i]);
+        if (plug_of_[i] >= 0) return {nullptr, -1, plugs_[plug_of_[i]].key, &plugs_[plug_of_[i]].cells};
+        return {&passage_, around_[i], closed_key_[around_[i]]};
+    }
+
+private:
+    struct Claim {
+        int robot = -1, passage = -1, mouth = -1;
+        int entry = 0, exit = 0;  // route cells before the passage (0: in it) and before its last cell there
+        bool parks = false;       // its goal lies in the passage (make_way)
+        bool arrives = false;     // its route reaches its goal within `lookahead` (follow_order)
+        int cells_begin = 0, cells_end = 0;  // claim_cells_[begin, end): its route's cells in the passage, ahead of it
+    };
+    WorldMap map_;
+    double made_with_[6] = {};  // the parameters and cell the passages were found with
+    double cell_ = 0;           // that cell, world units (follow_order)
+    std::vector<int> passage_, mouth_, route_, losers_, behind_, queue_, around_, around_side_, going_;
+    std::vector<Mouth> mouths_;
+    std::vector<std::vector<int>> mouth_cells_;  // per mouth: its cells
+    std::vector<Vec2> places_;                   // arbitrate: one queue's places
+    std::vector<float> walk_;                    // queue_places: walk lengths from a mouth (walk_from)
+    std::vector<int> walked_;                    // the cells walk_ holds
+    std::vector<std::vector<Vec2>> queue_memo_;  // per mouth: its first queue places found so far (queue_places)
+    double queue_memo_with_[3] = {-1, -1, -1};   // the queue parameters they were found with
+    std::vector<char> avoidable_;    // per passage: it has a way around within `bypass`
+    std::vector<uint64_t> closed_key_;  // per passage: ClosedCells::key of its cells
+    std::vector<Box> box_;              // per passage: the box of its cells' centres (arbitrate's `asked`: who may claim it)
+    std::vector<Claim> asked_claims_;   // arbitrate: the asked robots' claims, then made in robot order
+    std::vector<char> relevant_;        // arbitrate: per passage, some asked robot claims it
+    std::vector<int> relevant_list_;    // the same passages, listed
+    std::vector<int> holder_;           // arbitrate: per passage, the claim that holds it (-1: none)
+    std::vector<std::vector<int>> side_closed_;  // per avoidable passage p and side s, [2p + s]: the cells a robot going around on s keeps out of, sorted
+    std::vector<Claim> claims_;
+    std::vector<int> claim_cells_;  // arbitrate: the claims' route cells in their passages
+    std::vector<std::pair<int, int>> parked_;   // arbitrate: (robot, passage): robots in a passage that holds their goal (make_way)
+    std::vector<std::pair<int, int>> waiters_;  // arbitrate: (robot, mouth): who queues where at one passage
+    bool made_way_ = false;         // arbitrate: some parked robot was sent out ahead of a holder
+    struct SentOut {
+        int robot, passage, mouth;  // a parked robot sent out ahead of the holder of `passage`, in by `mouth` (make_way)
+    };
+    std::vector<SentOut> sent_out_;  // arbitrate: follow_order's heads of lines
+    std::vector<int> parker_ahead_;  // arbitrate: per robot going on to a goal in a passage, the robot ahead of it there that passes its goal, or -1
+    // order_pockets: robots whose goals may close a way, the travelling robots' routes (robot b's
+    // cells routes_[route_begin_[b], route_begin_[b + 1])), per grid cell the stamp of the last
+    // flood that saw it and of the pockets marked for the robot being placed, a flood's cells, the
+    // route points a waiting robot keeps clear of and the waiting spots taken.
+    std::vector<int> narrow_, routes_, route_begin_, seen_, pocket_, flood_;
+    int seen_stamp_ = 0, pocket_stamp_ = 0;
+    std::vector<Vec2> keep_clear_, spots_;
+    mutable std::vector<int> line_;  // follow_order: the claims going on, in lines
+    struct Plug {
+        uint64_t key;
+        std::vector<int> cells;  // sorted
+    };
+    std::vector<Plug> plugs_;       // arbitrate: the passage cells around robots parked in the way of another's goal
+    std::vector<int> plug_of_;      // per robot: the plug it goes around (an index into plugs_), or -1
+
+    // The passages' turns (arbitrate without pocket_order).
+    int take_turns(RouteGuide& guide, const WorldMap& map, int n, const Vec2* pos, const Vec2* goal, const char* at_goal,
+                   std::vector<char>& wait, std::vector<Vec2>& point, const int* ids, const char* asked) {
         const TrafficConfig& p = params;
         const double lengths[] = {p.one_lane_width, p.free_clear, p.lookahead, p.wait_back, p.queue_spacing, p.wait_side, p.min_length, p.bypass, p.spread, p.spare};
         for (double v : lengths)
@@ -3966,120 +4131,106 @@ public:
         }
         return waiting;
     }
-    // Whether the last arbitrate() saw claims on one passage from two of its mouths, or sent a
-    // parked robot out ahead of a holder (robots that may meet in it), of the passages it decided.
-    bool contested() const {
-        if (made_way_) return true;
-        for (size_t a = 0; a < claims_.size(); ++a)
-            for (size_t b = 0; b < a; ++b)
-                if (claims_[a].passage == claims_[b].passage && claims_[a].mouth != claims_[b].mouth) return true;
+    // Goals that close off a pocket (pocket_order; see the class comment): robots going on
+    // (wait[a] == kGoOn) whose goal, occupied, would close off a pocket another robot's route
+    // enters or leaves wait beside it, out of the pocket and off those routes. Returns how many.
+    int order_pockets(RouteGuide& guide, const WorldMap& map, int n, const Vec2* pos, const Vec2* goal, const char* at_goal,
+                      std::vector<char>& wait, std::vector<Vec2>& point) {
+        const ClearanceGrid& grid = guide.grid(map);
+        const double block = 2 * params.free_clear;                // a centre this near a parked robot's touches it
+        const double off = params.wait_side + params.free_clear;   // a waiting robot keeps this far from the routes it clears
+        const double reach = params.lookahead + off;               // and waits this near its goal
+        narrow_.clear();
+        for (int a = 0; a < n; ++a)  // no room to pass beside the goal: the only goals that may close a way
+            if (wait[a] == kGoOn && grid.clear[grid.index(goal[a])] < params.one_lane_width / 2) narrow_.push_back(a);
+        if (narrow_.empty()) return 0;
+        // Every travelling robot's whole route, once.
+        routes_.clear();
+        route_begin_.assign(n + 1, 0);
+        for (int b = 0; b < n; ++b) {
+            route_begin_[b] = (int)routes_.size();
+            if (at_goal[b]) continue;
+            guide.route_cells(map, pos[b], goal[b], std::numeric_limits<int>::max(), route_);
+            if (route_.size() >= 2) routes_.insert(routes_.end(), route_.begin(), route_.end());
+        }
+        route_begin_[n] = (int)routes_.size();
+        if (seen_.size() != (size_t)grid.n * grid.n) seen_.assign((size_t)grid.n * grid.n, 0), pocket_.assign(seen_.size(), 0);
+        const double side = 2 * params.bypass / grid.cell;
+        const int pocket_cap = (int)std::ceil(side * side);  // cells of a square 2 bypass wide
+        int waiting = 0;
+        spots_.clear();
+        for (int a : narrow_) {
+            ++pocket_stamp_;
+            keep_clear_.clear();
+            for (int b = 0; b < n; ++b) {
+                const int* r = routes_.data() + route_begin_[b];
+                const int len = route_begin_[b + 1] - route_begin_[b];
+                if (b == a || len == 0 || norm(goal[b] - goal[a]) < block) continue;
+                bool passes = false;
+                for (int k = 0; k < len && !passes; ++k) passes = norm(grid.centre(r[k]) - goal[a]) < block;
+                // A pocket: the side of the goal the route goes into (or comes out of) that fills
+                // before pocket_cap cells with the goal's disc closed.
+                if (!passes || !(is_pocket(grid, goal[a], block, r[len - 1], r[0], pocket_cap) || is_pocket(grid, goal[a], block, r[0], r[len - 1], pocket_cap)))
+                    continue;
+                for (int c : flood_) pocket_[c] = pocket_stamp_;
+                for (int k = 0; k < len; ++k)
+                    if (norm(grid.centre(r[k]) - goal[a]) < reach + off) keep_clear_.push_back(grid.centre(r[k]));
+            }
+            if (keep_clear_.empty()) continue;
+            Vec2 spot;
+            if (!waiting_spot(grid, goal[a], off, reach, spot)) continue;
+            wait[a] = kWait, point[a] = spot, ++waiting;
+            spots_.push_back(spot);
+        }
+        return waiting;
+    }
+    // Whether the free cells reached from cell `from` without coming within `block` of `centre`
+    // number fewer than `cap` and do not hold cell `to` (a pocket: then flood_ holds them).
+    bool is_pocket(const ClearanceGrid& grid, Vec2 centre, double block, int from, int to, int cap) {
+        ++seen_stamp_;
+        flood_.assign(1, from);
+        seen_[from] = seen_stamp_;
+        for (size_t q = 0; q < flood_.size(); ++q) {
+            const int k = flood_[q], x = k % grid.n, y = k / grid.n;
+            for (int dy = -1; dy <= 1; ++dy)
+                for (int dx = -1; dx <= 1; ++dx) {
+                    const int x2 = x + dx, y2 = y + dy, k2 = y2 * grid.n + x2;
+                    if (x2 < 0 || y2 < 0 || x2 >= grid.n || y2 >= grid.n || seen_[k2] == seen_stamp_) continue;
+                    seen_[k2] = seen_stamp_;
+                    if (grid.clear[k2] < params.free_clear || norm(grid.centre(k2) - centre) < block) continue;
+                    if (k2 == to || (int)flood_.size() >= cap) return false;
+                    flood_.push_back(k2);
+                }
+        }
+        return true;
+    }
+    // The free cell nearest `goal` by walk (out of the pockets marked, within `reach` of it) that
+    // is `off` from it, from every point of keep_clear_ and from the spots taken this call.
+    bool waiting_spot(const ClearanceGrid& grid, Vec2 goal, double off, double reach, Vec2& spot) {
+        ++seen_stamp_;
+        const int start = grid.index(goal);
+        flood_.assign(1, start);
+        seen_[start] = seen_stamp_;
+        auto fits = [&](Vec2 c) {
+            if (norm(c - goal) < off) return false;
+            for (Vec2 k : keep_clear_) if (norm(c - k) < off) return false;
+            for (Vec2 k : spots_) if (norm(c - k) < 2 * off) return false;
+            return true;
+        };
+        for (size_t q = 0; q < flood_.size(); ++q) {
+            const int k = flood_[q], x = k % grid.n, y = k / grid.n;
+            if (q > 0 && fits(grid.centre(k))) return spot = grid.centre(k), true;
+            for (int dy = -1; dy <= 1; ++dy)
+                for (int dx = -1; dx <= 1; ++dx) {
+                    const int x2 = x + dx, y2 = y + dy, k2 = y2 * grid.n + x2;
+                    if (x2 < 0 || y2 < 0 || x2 >= grid.n || y2 >= grid.n || seen_[k2] == seen_stamp_) continue;
+                    seen_[k2] = seen_stamp_;
+                    if (grid.clear[k2] < params.free_clear || pocket_[k2] == pocket_stamp_ || norm(grid.centre(k2) - goal) > reach) continue;
+                    flood_.push_back(k2);
+                }
+        }
         return false;
     }
-    // Who follows whom through a passage, from the last arbitrate() (its `turn` and `pos`):
-    // ahead[i], the robot directly ahead of robot i in one line through its passage, or -1. A
-    // line: the claims going on into (or through) a passage by one mouth, the one farthest in
-    // first (robots in it by their distance from that mouth, then those outside by how near they
-    // are), headed by the parked robots sent out ahead of them (make_way), the farthest first.
-    // A robot follows one that goes on past `lookahead` and is in the passage or follows (one
-    // outside a line can step aside; one about to arrive is better planned after the robots
-    // that pass its goal, which it then makes way for, as the expert's priorities have it: the
-    // corridor interaction scene). Robots parking in the passage follow no one. A robot going on
-    // by another mouth than the holder's (it enters once the holder is `spare` out) follows the
-    // holder. A planner that plans robots one after another (the guided expert) plans each after
-    // the one it follows: planned first, a robot behind routes through the one ahead in a
-    // one-lane aisle, which then cannot go on, and one coming in by the far mouth sends the
-    // holder back out (docs/experiments.md, "The expert's line through an aisle").
-    void follow_order(const std::vector<char>& turn, const Vec2* pos, std::vector<int>& ahead) const {
-        ahead.assign(turn.size(), -1);
-        auto depth = [&](const Claim& c) { return c.entry > 0 ? -c.entry * cell_ : norm(pos[c.robot] - mouths_[c.mouth].at); };
-        line_.clear();
-        for (int k = 0; k < (int)claims_.size(); ++k)
-            if (!claims_[k].parks && turn[claims_[k].robot] == kGoOn) line_.push_back(k);
-        // By passage and mouth, then the farthest in first: each line from its head.
-        std::sort(line_.begin(), line_.end(), [&](int a, int b) {
-            const Claim &x = claims_[a], &y = claims_[b];
-            if (x.passage != y.passage || x.mouth != y.mouth) return std::tie(x.passage, x.mouth) < std::tie(y.passage, y.mouth);
-            return depth(x) != depth(y) ? depth(x) > depth(y) : x.robot < y.robot;
-        });
-        bool followed = false;  // the robot before in the line is followed
-        for (size_t k = 0; k < line_.size(); ++k) {
-            const Claim& c = claims_[line_[k]];
-            const bool head = k == 0 || claims_[line_[k - 1]].passage != c.passage || claims_[line_[k - 1]].mouth != c.mouth;
-            if (head) {  // it follows the robots sent out ahead of it, the nearest last
-                for (int last = c.robot;;) {
-                    int nearest = -1;
-                    const double beyond = last == c.robot ? -1 : norm(pos[last] - pos[c.robot]);
-                    for (const SentOut& o : sent_out_)
-                        if (o.passage == c.passage && o.mouth == c.mouth && norm(pos[o.robot] - pos[c.robot]) > beyond &&
-                            (nearest < 0 || norm(pos[o.robot] - pos[c.robot]) < norm(pos[nearest] - pos[c.robot])))
-                            nearest = o.robot;
-                    if (nearest < 0) break;
-                    ahead[last] = nearest;
-                    last = nearest;
-                }
-            } else if (followed) {
-                ahead[c.robot] = claims_[line_[k - 1]].robot;
-            }
-            followed = !c.arrives && (c.entry == 0 || ahead[c.robot] >= 0);
-        }
-        for (int k : line_) {  // going on by another mouth than the holder's: after the holder
-            const Claim& c = claims_[k];
-            const int h = holder_[c.passage];
-            if (ahead[c.robot] < 0 && h >= 0 && claims_[h].mouth != c.mouth) ahead[c.robot] = claims_[h].robot;
-        }
-    }
-    // The cells robot i of the last arbitrate() keeps out of (its passage's; none unless it goes around).
-    ClosedCells closed_to(int i) const {
-        if (i < 0 || i >= (int)around_.size() || around_[i] < 0) return {};
-        if (around_side_[i] >= 0) return side_cells(around_[i], around_side_[i]);
-        if (plug_of_[i] >= 0) return {nullptr, -1, plugs_[plug_of_[i]].key, &plugs_[plug_of_[i]].cells};
-        return {&passage_, around_[i], closed_key_[around_[i]]};
-    }
-
-private:
-    struct Claim {
-        int robot = -1, passage = -1, mouth = -1;
-        int entry = 0, exit = 0;  // route cells before the passage (0: in it) and before its last cell there
-        bool parks = false;       // its goal lies in the passage (make_way)
-        bool arrives = false;     // its route reaches its goal within `lookahead` (follow_order)
-        int cells_begin = 0, cells_end = 0;  // claim_cells_[begin, end): its route's cells in the passage, ahead of it
-    };
-    WorldMap map_;
-    double made_with_[6] = {};  // the parameters and cell the passages were found with
-    double cell_ = 0;           // that cell, world units (follow_order)
-    std::vector<int> passage_, mouth_, route_, losers_, behind_, queue_, around_, around_side_, going_;
-    std::vector<Mouth> mouths_;
-    std::vector<std::vector<int>> mouth_cells_;  // per mouth: its cells
-    std::vector<Vec2> places_;                   // arbitrate: one queue's places
-    std::vector<float> walk_;                    // queue_places: walk lengths from a mouth (walk_from)
-    std::vector<int> walked_;                    // the cells walk_ holds
-    std::vector<std::vector<Vec2>> queue_memo_;  // per mouth: its first queue places found so far (queue_places)
-    double queue_memo_with_[3] = {-1, -1, -1};   // the queue parameters they were found with
-    std::vector<char> avoidable_;    // per passage: it has a way around within `bypass`
-    std::vector<uint64_t> closed_key_;  // per passage: ClosedCells::key of its cells
-    std::vector<Box> box_;              // per passage: the box of its cells' centres (arbitrate's `asked`: who may claim it)
-    std::vector<Claim> asked_claims_;   // arbitrate: the asked robots' claims, then made in robot order
-    std::vector<char> relevant_;        // arbitrate: per passage, some asked robot claims it
-    std::vector<int> relevant_list_;    // the same passages, listed
-    std::vector<int> holder_;           // arbitrate: per passage, the claim that holds it (-1: none)
-    std::vector<std::vector<int>> side_closed_;  // per avoidable passage p and side s, [2p + s]: the cells a robot going around on s keeps out of, sorted
-    std::vector<Claim> claims_;
-    std::vector<int> claim_cells_;  // arbitrate: the claims' route cells in their passages
-    std::vector<std::pair<int, int>> parked_;   // arbitrate: (robot, passage): robots in a passage that holds their goal (make_way)
-    std::vector<std::pair<int, int>> waiters_;  // arbitrate: (robot, mouth): who queues where at one passage
-    bool made_way_ = false;         // arbitrate: some parked robot was sent out ahead of a holder
-    struct SentOut {
-        int robot, passage, mouth;  // a parked robot sent out ahead of the holder of `passage`, in by `mouth` (make_way)
-    };
-    std::vector<SentOut> sent_out_;  // arbitrate: follow_order's heads of lines
-    mutable std::vector<int> line_;  // follow_order: the claims going on, in lines
-    struct Plug {
-        uint64_t key;
-        std::vector<int> cells;  // sorted
-    };
-    std::vector<Plug> plugs_;       // arbitrate: the passage cells around robots parked in the way of another's goal
-    std::vector<int> plug_of_;      // per robot: the plug it goes around (an index into plugs_), or -1
-
     // Robot i's claim (`c`): the first passage on its route within max_cells route cells, where
     // the route enters and leaves it, and the mouth it enters by; false when it claims none.
     bool make_claim(RouteGuide& guide, const WorldMap& map, const std::vector<int>& cell_passage, int max_cells, int i, const Vec2* pos, const Vec2* goal,
@@ -4558,6 +4709,7 @@ private:
 inline TrafficConfig expert_traffic() {
     TrafficConfig traffic = PlannerConfig{}.traffic;
     traffic.spare = 0.1;
+    traffic.pocket_order = true;
     return traffic;
 }
 

@@ -748,3 +748,81 @@ TEST_CASE("passages: follow_order, a robot coming in by the far mouth after the 
     pc.follow_order(turns.wait, pos.data(), ahead);
     CHECK(ahead == std::vector<int>{-1, 0});
 }
+
+namespace {
+// A dead end 0.3 wide from y = -1.1 up to its mouth at y = 0, in a world of half-size 2.
+WorldMap dead_end_map() {
+    WorldMap m;
+    m.half_size = 2.0;
+    m.boxes.push_back({{-0.25, -1.1}, {-0.15, 0}});
+    m.boxes.push_back({{0.15, -1.1}, {0.25, 0}});
+    m.boxes.push_back({{-0.25, -1.2}, {0.25, -1.1}});
+    return m;
+}
+}  // namespace
+
+TEST_CASE("passages: pocket_order, a robot whose goal would close off a dead end another's route enters waits beside it, off that route") {
+    // Robot 0's goal is just inside the mouth of a one-lane dead end; robot 1's is at its far end.
+    const WorldMap map = dead_end_map();
+    const std::vector<Vec2> pos{{0.6, 0.6}, {-1.2, 1.4}}, goal{{0, -0.2}, {0, -0.9}};
+    PassageControl pc;
+    pc.params.pocket_order = true;
+    const Turns t = arbitrate(map, pos, goal, {}, &pc);
+    REQUIRE(t.wait == std::vector<char>{kWait, kGoOn});
+    const Vec2 q = t.point[0];
+    CHECK(q.y > 0);  // out of the dead end, beside its mouth
+    CHECK(static_clearance(map, q) >= 0.1);
+    RouteGuide guide;
+    std::vector<int> route;
+    guide.route_cells(map, pos[1], goal[1], 1000, route);
+    REQUIRE(!route.empty());
+    for (int c : route) CHECK(norm(guide.grid().centre(c) - q) >= 0.3);  // off robot 1's way in
+    // Once robot 1 has arrived, robot 0 goes on; with the goals swapped, robot 1 waits.
+    CHECK(arbitrate(map, pos, goal, {0, 1}, &pc).wait == std::vector<char>{kGoOn, kGoOn});
+    CHECK(arbitrate(map, pos, {goal[1], goal[0]}, {}, &pc).wait == std::vector<char>{kGoOn, kWait});
+    // A robot coming out of the dead end is waited for too.
+    CHECK(arbitrate(map, {pos[0], {0, -0.9}}, {goal[0], {-1.2, 1.4}}, {}, &pc).wait == std::vector<char>{kWait, kGoOn});
+    // The planner's default: off; the expert's: on.
+    CHECK_FALSE(TrafficConfig{}.pocket_order);
+    CHECK(expert_traffic().pocket_order);
+    CHECK(arbitrate(map, pos, goal).wait == std::vector<char>{kGoOn, kGoOn});
+}
+
+TEST_CASE("expert: a robot parked at the mouth of a one-cell dead end lets one bound for its far end in first (pocket_order)") {
+    // maze-32-32-4 at cell 0.25, seed 38 with 16 robots (results/maps, 2026-12-03): robot 12
+    // parks at its goal in the first cell of the dead end at column 31, rows 15-19; robot 9,
+    // bound for row 19, pushes it deeper, and the two hold each other to the end.
+    const MovingAiMap maze = load_movingai_map("maps/movingai/maze-32-32-4.map");
+    Scene scene = movingai_scene(maze, random_movingai_scenario(maze, 1, 0), "random", 1, 0.25);
+    auto at = [](double c, double r) { return Vec2{-4 + (c + 0.5) * 0.25, 4 - (r + 0.5) * 0.25}; };  // map cell (c, r)
+    scene.starts = {at(31, 15), at(20.2, 18.9)};
+    scene.goals = {at(31, 15), at(31, 19)};
+    auto run = [&](bool pocket_order) {
+        WorldConfig wc;
+        wc.max_steps = 500;
+        World w = make_world(scene, wc);
+        TrafficConfig traffic = expert_traffic();
+        traffic.pocket_order = pocket_order;
+        GuidedExpert expert(w.map(), ExpertParams{}, passage_traffic(traffic));
+        return run_episode(w, expert);
+    };
+    const EpisodeResult ordered = run(true);
+    CHECK(ordered.success);
+    CHECK(ordered.collisions() == 0);
+    CHECK(ordered.steps < 150);  // 117 when measured
+    CHECK_FALSE(run(false).success);  // the scene needs the rule
+}
+
+TEST_CASE("passages: follow_order, a robot going on to a goal in a corridor follows the one ahead of it that goes deeper") {
+    // Two robots coming in by one mouth, the nearer bound deeper: both go on, and the one behind
+    // follows (the expert plans it after: planned first it routes through the one ahead, which
+    // steps back, and the two creep along a one-lane aisle: maze-32-32-4, seed 87 at cell 0.25).
+    const WorldMap map = corridor_map(0.44, 0.4);
+    const std::vector<Vec2> pos{{0, -0.55}, {0.05, -0.85}}, goal{{0, 0.3}, {0, -0.2}};
+    PassageControl pc;
+    const Turns turns = arbitrate(map, pos, goal, {}, &pc);
+    REQUIRE(turns.wait == std::vector<char>{kGoOn, kGoOn});
+    std::vector<int> ahead;
+    pc.follow_order(turns.wait, pos.data(), ahead);
+    CHECK(ahead == std::vector<int>{-1, 0});
+}
