@@ -3812,10 +3812,12 @@ inline void PlannerConfig::set(const std::string& name, const std::string& text)
 //   - Goals that close off a pocket (pocket_order): a robot parked at its goal in a one-lane
 //     place (the dead ends PassageControl does not count as passages) stands in the way of a
 //     robot whose route goes past it into the space behind, or out of it, and in a dead end the
-//     two cannot swap. A goal closes off a pocket for a route that comes within two radii
-//     (2 free_clear) of it when, with that disc closed, the free cells on one side of it, the
-//     route's end or its start, number fewer than a square 2 bypass wide. Its robot, unless
-//     already waiting, waits (kWait) at the free cell nearest its goal by walk, within
+//     two cannot swap. A goal in a one-lane cell closes off a pocket for a route that comes
+//     within two radii (2 free_clear) of it when, with that disc closed, the free cells on one
+//     side of it, the route's end or its start, are all one-lane and cover less than a square
+//     `bypass` wide (a dead end; in a wider pocket the parked robot steps aside), unless its
+//     robot would arrive (route cells, one a step) wait_back after the route's robot is past.
+//     Its robot, unless already waiting, waits (kWait) at the free cell nearest its goal by walk, within
 //     lookahead + wait_side + free_clear of it and out of the pockets, that keeps
 //     wait_side + free_clear from the goal, from those routes and from the spots given to
 //     others: so a dead end fills from its far end (maze-32-32-4, seed 38 at cell 0.25).
@@ -3993,6 +3995,7 @@ private:
     // cells routes_[route_begin_[b], route_begin_[b + 1])), per grid cell the stamp of the last
     // flood that saw it and of the pockets marked for the robot being placed, a flood's cells, the
     // route points a waiting robot keeps clear of and the waiting spots taken.
+    std::vector<char> one_lane_;  // per grid cell: one-lane (find_passages)
     std::vector<int> narrow_, routes_, route_begin_, seen_, pocket_, flood_;
     int seen_stamp_ = 0, pocket_stamp_ = 0;
     std::vector<Vec2> keep_clear_, spots_;
@@ -4140,9 +4143,10 @@ private:
         const double block = 2 * params.free_clear;                // a centre this near a parked robot's touches it
         const double off = params.wait_side + params.free_clear;   // a waiting robot keeps this far from the routes it clears
         const double reach = params.lookahead + off;               // and waits this near its goal
+        passage(guide, map);  // the one-lane cells
         narrow_.clear();
         for (int a = 0; a < n; ++a)  // no room to pass beside the goal: the only goals that may close a way
-            if (wait[a] == kGoOn && grid.clear[grid.index(goal[a])] < params.one_lane_width / 2) narrow_.push_back(a);
+            if (wait[a] == kGoOn && one_lane_[grid.index(goal[a])]) narrow_.push_back(a);
         if (narrow_.empty()) return 0;
         // Every travelling robot's whole route, once.
         routes_.clear();
@@ -4155,8 +4159,9 @@ private:
         }
         route_begin_[n] = (int)routes_.size();
         if (seen_.size() != (size_t)grid.n * grid.n) seen_.assign((size_t)grid.n * grid.n, 0), pocket_.assign(seen_.size(), 0);
-        const double side = 2 * params.bypass / grid.cell;
-        const int pocket_cap = (int)std::ceil(side * side);  // cells of a square 2 bypass wide
+        const double side = params.bypass / grid.cell;
+        const int pocket_cap = (int)std::ceil(side * side);  // cells of a square `bypass` wide
+        const int spare_cells = (int)std::ceil(params.wait_back / grid.cell);
         int waiting = 0;
         spots_.clear();
         for (int a : narrow_) {
@@ -4166,11 +4171,14 @@ private:
                 const int* r = routes_.data() + route_begin_[b];
                 const int len = route_begin_[b + 1] - route_begin_[b];
                 if (b == a || len == 0 || norm(goal[b] - goal[a]) < block) continue;
-                bool passes = false;
-                for (int k = 0; k < len && !passes; ++k) passes = norm(grid.centre(r[k]) - goal[a]) < block;
+                int past = -1;  // the last route cell within `block` of a's goal: b is past it there
+                for (int k = 0; k < len; ++k)
+                    if (norm(grid.centre(r[k]) - goal[a]) < block) past = k;
+                // Robot a would arrive (a cell a step, as b moves) only after b is past, with room to spare.
+                const bool early = past >= 0 && route_begin_[a + 1] - route_begin_[a] <= past + spare_cells;
                 // A pocket: the side of the goal the route goes into (or comes out of) that fills
                 // before pocket_cap cells with the goal's disc closed.
-                if (!passes || !(is_pocket(grid, goal[a], block, r[len - 1], r[0], pocket_cap) || is_pocket(grid, goal[a], block, r[0], r[len - 1], pocket_cap)))
+                if (!early || !(is_pocket(grid, goal[a], block, r[len - 1], r[0], pocket_cap) || is_pocket(grid, goal[a], block, r[0], r[len - 1], pocket_cap)))
                     continue;
                 for (int c : flood_) pocket_[c] = pocket_stamp_;
                 for (int k = 0; k < len; ++k)
@@ -4185,7 +4193,8 @@ private:
         return waiting;
     }
     // Whether the free cells reached from cell `from` without coming within `block` of `centre`
-    // number fewer than `cap` and do not hold cell `to` (a pocket: then flood_ holds them).
+    // number fewer than `cap`, are all one-lane and do not hold cell `to` (a dead end: then
+    // flood_ holds them). In a wider pocket the parked robot can step aside for the other.
     bool is_pocket(const ClearanceGrid& grid, Vec2 centre, double block, int from, int to, int cap) {
         ++seen_stamp_;
         flood_.assign(1, from);
@@ -4198,7 +4207,7 @@ private:
                     if (x2 < 0 || y2 < 0 || x2 >= grid.n || y2 >= grid.n || seen_[k2] == seen_stamp_) continue;
                     seen_[k2] = seen_stamp_;
                     if (grid.clear[k2] < params.free_clear || norm(grid.centre(k2) - centre) < block) continue;
-                    if (k2 == to || (int)flood_.size() >= cap) return false;
+                    if (k2 == to || (int)flood_.size() >= cap || !one_lane_[k2]) return false;
                     flood_.push_back(k2);
                 }
         }
@@ -4618,6 +4627,8 @@ private:
             const int a = surface_group[detail::nearest_surface(map, ends[0])], b = surface_group[detail::nearest_surface(map, ends[1])];
             one_lane[k] = std::min(a, b) * groups + std::max(a, b);
         }
+        one_lane_.resize((size_t)n * n);
+        for (size_t k = 0; k < one_lane.size(); ++k) one_lane_[k] = one_lane[k] >= 0;
         passage_.assign((size_t)n * n, -1);
         mouth_.assign((size_t)n * n, -1);
         mouths_.clear();
