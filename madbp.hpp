@@ -4199,19 +4199,16 @@ private:
         ++seen_stamp_;
         flood_.assign(1, from);
         seen_[from] = seen_stamp_;
-        for (size_t q = 0; q < flood_.size(); ++q) {
-            const int k = flood_[q], x = k % grid.n, y = k / grid.n;
-            for (int dy = -1; dy <= 1; ++dy)
-                for (int dx = -1; dx <= 1; ++dx) {
-                    const int x2 = x + dx, y2 = y + dy, k2 = y2 * grid.n + x2;
-                    if (x2 < 0 || y2 < 0 || x2 >= grid.n || y2 >= grid.n || seen_[k2] == seen_stamp_) continue;
-                    seen_[k2] = seen_stamp_;
-                    if (grid.clear[k2] < params.free_clear || norm(grid.centre(k2) - centre) < block) continue;
-                    if (k2 == to || (int)flood_.size() >= cap || !one_lane_[k2]) return false;
-                    flood_.push_back(k2);
-                }
-        }
-        return true;
+        bool open = false;  // it reached `to`, a cell that is not one-lane, or `cap` cells
+        for (size_t q = 0; q < flood_.size() && !open; ++q)
+            detail::for_each_neighbour(grid.n, flood_[q], [&](int k2) {
+                if (open || seen_[k2] == seen_stamp_) return;
+                seen_[k2] = seen_stamp_;
+                if (grid.clear[k2] < params.free_clear || norm(grid.centre(k2) - centre) < block) return;
+                open = k2 == to || (int)flood_.size() >= cap || !one_lane_[k2];
+                if (!open) flood_.push_back(k2);
+            });
+        return !open;
     }
     // The free cell nearest `goal` by walk (out of the pockets marked, within `reach` of it) that
     // is `off` from it, from every point of keep_clear_ and from the spots taken this call.
@@ -4227,16 +4224,12 @@ private:
             return true;
         };
         for (size_t q = 0; q < flood_.size(); ++q) {
-            const int k = flood_[q], x = k % grid.n, y = k / grid.n;
-            if (q > 0 && fits(grid.centre(k))) return spot = grid.centre(k), true;
-            for (int dy = -1; dy <= 1; ++dy)
-                for (int dx = -1; dx <= 1; ++dx) {
-                    const int x2 = x + dx, y2 = y + dy, k2 = y2 * grid.n + x2;
-                    if (x2 < 0 || y2 < 0 || x2 >= grid.n || y2 >= grid.n || seen_[k2] == seen_stamp_) continue;
-                    seen_[k2] = seen_stamp_;
-                    if (grid.clear[k2] < params.free_clear || pocket_[k2] == pocket_stamp_ || norm(grid.centre(k2) - goal) > reach) continue;
-                    flood_.push_back(k2);
-                }
+            if (q > 0 && fits(grid.centre(flood_[q]))) return spot = grid.centre(flood_[q]), true;
+            detail::for_each_neighbour(grid.n, flood_[q], [&](int k2) {
+                if (seen_[k2] == seen_stamp_) return;
+                seen_[k2] = seen_stamp_;
+                if (grid.clear[k2] >= params.free_clear && pocket_[k2] != pocket_stamp_ && norm(grid.centre(k2) - goal) <= reach) flood_.push_back(k2);
+            });
         }
         return false;
     }

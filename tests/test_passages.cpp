@@ -777,9 +777,11 @@ TEST_CASE("passages: pocket_order, a robot whose goal would close off a dead end
     guide.route_cells(map, pos[1], goal[1], 1000, route);
     REQUIRE(!route.empty());
     for (int c : route) CHECK(norm(guide.grid().centre(c) - q) >= 0.3);  // off robot 1's way in
-    // Once robot 1 has arrived, robot 0 goes on; with the goals swapped, robot 1 waits.
+    // Once robot 1 has arrived, robot 0 goes on. With the goals swapped, robot 1 (farther out)
+    // would arrive after robot 0 is past: both go on; from nearer, it waits.
     CHECK(arbitrate(map, pos, goal, {0, 1}, &pc).wait == std::vector<char>{kGoOn, kGoOn});
-    CHECK(arbitrate(map, pos, {goal[1], goal[0]}, {}, &pc).wait == std::vector<char>{kGoOn, kWait});
+    CHECK(arbitrate(map, pos, {goal[1], goal[0]}, {}, &pc).wait == std::vector<char>{kGoOn, kGoOn});
+    CHECK(arbitrate(map, {pos[0], {-0.3, 0.3}}, {goal[1], goal[0]}, {}, &pc).wait == std::vector<char>{kGoOn, kWait});
     // A robot coming out of the dead end is waited for too.
     CHECK(arbitrate(map, {pos[0], {0, -0.9}}, {goal[0], {-1.2, 1.4}}, {}, &pc).wait == std::vector<char>{kWait, kGoOn});
     // The planner's default: off; the expert's: on.
