@@ -4174,10 +4174,11 @@ private:
                 int past = -1;  // the last route cell within `block` of a's goal: b is past it there
                 for (int k = 0; k < len; ++k)
                     if (norm(grid.centre(r[k]) - goal[a]) < block) past = k;
-                // Robot a would arrive (a cell a step, as b moves) only after b is past, with room to spare.
+                // Robot a would arrive (a cell a step, as b moves) before b is past, or less than
+                // wait_back after: it would park in b's way.
                 const bool early = past >= 0 && route_begin_[a + 1] - route_begin_[a] <= past + spare_cells;
-                // A pocket: the side of the goal the route goes into (or comes out of) that fills
-                // before pocket_cap cells with the goal's disc closed.
+                // A dead end: the side of the goal the route goes into (or comes out of) holds,
+                // with the goal's disc closed, only one-lane cells, fewer than pocket_cap.
                 if (!early || !(is_pocket(grid, goal[a], block, r[len - 1], r[0], pocket_cap) || is_pocket(grid, goal[a], block, r[0], r[len - 1], pocket_cap)))
                     continue;
                 for (int c : flood_) pocket_[c] = pocket_stamp_;
