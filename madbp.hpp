@@ -3821,8 +3821,8 @@ inline void PlannerConfig::set(const std::string& name, const std::string& text)
 //     lookahead + wait_side + free_clear of it and out of the pockets, that keeps
 //     wait_side + free_clear from the goal, from those routes and from the spots given to
 //     others: so a dead end fills from its far end (maze-32-32-4, seed 38 at cell 0.25).
-// Memory: a few grids (one of them the walk lengths from a mouth, for queues; with pocket_order
-// two more of ints), plus two cell lists per avoidable passage (its sides); per call, the claims'
+// Memory: a few grids (one of them the walk lengths from a mouth, for queues; one of a byte a
+// cell, the one-lane cells; with pocket_order two more of ints), plus two cell lists per avoidable passage (its sides); per call, the claims'
 // route cells in their passages and a few cells per plug, and with pocket_order every travelling
 // robot's whole route.
 // Claims are made afresh at every call from positions, goals and ids alone, so robots that plan
