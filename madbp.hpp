@@ -3866,7 +3866,7 @@ public:
         if (params.pocket_order) waiting += order_pockets(guide, map, n, pos, goal, at_goal, wait, point);
         // follow_order: who each robot going on to a goal in a passage follows.
         parker_ahead_.assign(n, -1);
-        auto depth = [&](const Claim& c) { return c.entry > 0 ? -c.entry * cell_ : norm(pos[c.robot] - mouths_[c.mouth].at); };
+        auto depth = [&](const Claim& c) { return claim_depth(c, pos); };
         for (const Claim& c : claims_) {
             if (!c.parks || wait[c.robot] != kGoOn) continue;
             const Claim* next = nullptr;
@@ -3904,7 +3904,7 @@ public:
     // holder back out (docs/experiments.md, "The expert's line through an aisle").
     void follow_order(const std::vector<char>& turn, const Vec2* pos, std::vector<int>& ahead) const {
         ahead.assign(turn.size(), -1);
-        auto depth = [&](const Claim& c) { return c.entry > 0 ? -c.entry * cell_ : norm(pos[c.robot] - mouths_[c.mouth].at); };
+        auto depth = [&](const Claim& c) { return claim_depth(c, pos); };
         line_.clear();
         for (int k = 0; k < (int)claims_.size(); ++k)
             if (!claims_[k].parks && turn[claims_[k].robot] == kGoOn) line_.push_back(k);
@@ -4233,6 +4233,11 @@ private:
             });
         }
         return false;
+    }
+    // How far in claim c's robot is: its distance from the mouth it enters by when in the passage,
+    // else minus the route length to it (the lines of follow_order, from the farthest in).
+    double claim_depth(const Claim& c, const Vec2* pos) const {
+        return c.entry > 0 ? -c.entry * cell_ : norm(pos[c.robot] - mouths_[c.mouth].at);
     }
     // Robot i's claim (`c`): the first passage on its route within max_cells route cells, where
     // the route enters and leaves it, and the mouth it enters by; false when it claims none.

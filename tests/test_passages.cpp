@@ -74,6 +74,16 @@ std::vector<Vec2> walk_route(const WorldMap& map, Vec2 from, Vec2 to, ClosedCell
     return {};
 }
 
+// follow_order's `ahead` for two robots that both go on (required).
+std::vector<int> ahead_of_two(const WorldMap& map, const std::vector<Vec2>& pos, const std::vector<Vec2>& goal) {
+    PassageControl pc;
+    const Turns turns = arbitrate(map, pos, goal, {}, &pc);
+    REQUIRE(turns.wait == std::vector<char>{kGoOn, kGoOn});
+    std::vector<int> ahead;
+    pc.follow_order(turns.wait, pos.data(), ahead);
+    return ahead;
+}
+
 }  // namespace
 
 TEST_CASE("passages: a long one-lane corridor, avoidable when it has a way around; not a doorway or a wide corridor") {
@@ -739,14 +749,7 @@ TEST_CASE("passages: follow_order, a robot coming in by the far mouth after the 
     // spare's scene (above): robot 0 near the top end on its way up holds the corridor; robot 1,
     // coming down, would enter after it is out, so it goes on, planned after it (the expert: one
     // planned first sends the holder back out, and the two take turns for good).
-    const WorldMap map = corridor_map(0.44, 0.4);
-    const std::vector<Vec2> pos{{0, 0.3}, {0, 1.05}}, goal{{0, 0.9}, {0, -0.9}};
-    PassageControl pc;
-    const Turns turns = arbitrate(map, pos, goal, {}, &pc);
-    REQUIRE(turns.wait == std::vector<char>{kGoOn, kGoOn});
-    std::vector<int> ahead;
-    pc.follow_order(turns.wait, pos.data(), ahead);
-    CHECK(ahead == std::vector<int>{-1, 0});
+    CHECK(ahead_of_two(corridor_map(0.44, 0.4), {{0, 0.3}, {0, 1.05}}, {{0, 0.9}, {0, -0.9}}) == std::vector<int>{-1, 0});
 }
 
 namespace {
@@ -819,12 +822,5 @@ TEST_CASE("passages: follow_order, a robot going on to a goal in a corridor foll
     // Two robots coming in by one mouth, the nearer bound deeper: both go on, and the one behind
     // follows (the expert plans it after: planned first it routes through the one ahead, which
     // steps back, and the two creep along a one-lane aisle: maze-32-32-4, seed 87 at cell 0.25).
-    const WorldMap map = corridor_map(0.44, 0.4);
-    const std::vector<Vec2> pos{{0, -0.55}, {0.05, -0.85}}, goal{{0, 0.3}, {0, -0.2}};
-    PassageControl pc;
-    const Turns turns = arbitrate(map, pos, goal, {}, &pc);
-    REQUIRE(turns.wait == std::vector<char>{kGoOn, kGoOn});
-    std::vector<int> ahead;
-    pc.follow_order(turns.wait, pos.data(), ahead);
-    CHECK(ahead == std::vector<int>{-1, 0});
+    CHECK(ahead_of_two(corridor_map(0.44, 0.4), {{0, -0.55}, {0.05, -0.85}}, {{0, 0.3}, {0, -0.2}}) == std::vector<int>{-1, 0});
 }
