@@ -3864,18 +3864,6 @@ public:
                   std::vector<char>& wait, std::vector<Vec2>& point, const int* ids = nullptr, const char* asked = nullptr) {
         int waiting = take_turns(guide, map, n, pos, goal, at_goal, wait, point, ids, asked);
         if (params.pocket_order) waiting += order_pockets(guide, map, n, pos, goal, at_goal, wait, point);
-        // follow_order: who each robot going on to a goal in a passage follows.
-        parker_ahead_.assign(n, -1);
-        auto depth = [&](const Claim& c) { return claim_depth(c, pos); };
-        for (const Claim& c : claims_) {
-            if (!c.parks || wait[c.robot] != kGoOn) continue;
-            const Claim* next = nullptr;
-            for (const Claim& d : claims_)
-                if (d.robot != c.robot && d.passage == c.passage && d.mouth == c.mouth && wait[d.robot] == kGoOn && depth(d) > depth(c) &&
-                    (!next || depth(d) < depth(*next)) && passes(guide.grid(), d, goal[d.robot], goal[c.robot]))
-                    next = &d;
-            if (next) parker_ahead_[c.robot] = next->robot;
-        }
         return waiting;
     }
     // Whether the last arbitrate() saw claims on one passage from two of its mouths, or sent a
@@ -3887,7 +3875,7 @@ public:
                 if (claims_[a].passage == claims_[b].passage && claims_[a].mouth != claims_[b].mouth) return true;
         return false;
     }
-    // Who follows whom through a passage, from the last arbitrate() (its `turn` and `pos`):
+    // Who follows whom through a passage, from the last arbitrate() (its guide, `turn`, `pos` and `goal`):
     // ahead[i], the robot directly ahead of robot i in one line through its passage, or -1. A
     // line: the claims going on into (or through) a passage by one mouth, the one farthest in
     // first (robots in it by their distance from that mouth, then those outside by how near they
@@ -3902,7 +3890,7 @@ public:
     // the one it follows: planned first, a robot behind routes through the one ahead in a
     // one-lane aisle, which then cannot go on, and one coming in by the far mouth sends the
     // holder back out (docs/experiments.md, "The expert's line through an aisle").
-    void follow_order(const std::vector<char>& turn, const Vec2* pos, std::vector<int>& ahead) const {
+    void follow_order(const RouteGuide& guide, const std::vector<char>& turn, const Vec2* pos, const Vec2* goal, std::vector<int>& ahead) const {
         ahead.assign(turn.size(), -1);
         auto depth = [&](const Claim& c) { return claim_depth(c, pos); };
         line_.clear();
@@ -3943,8 +3931,15 @@ public:
         // Going on to a goal in the passage: after the nearest robot ahead of it there that passes
         // its goal (planned first, it routes through that robot, which then steps back to let it
         // by in a one-lane aisle, and the two creep: maze-32-32-4, seed 87 at cell 0.25).
-        for (const Claim& c : claims_)
-            if (c.parks && turn[c.robot] == kGoOn && c.robot < (int)parker_ahead_.size()) ahead[c.robot] = parker_ahead_[c.robot];
+        for (const Claim& c : claims_) {
+            if (!c.parks || turn[c.robot] != kGoOn) continue;
+            const Claim* next = nullptr;
+            for (const Claim& d : claims_)
+                if (d.robot != c.robot && d.passage == c.passage && d.mouth == c.mouth && turn[d.robot] == kGoOn && depth(d) > depth(c) &&
+                    (!next || depth(d) < depth(*next)) && passes(guide.grid(), d, goal[d.robot], goal[c.robot]))
+                    next = &d;
+            ahead[c.robot] = next ? next->robot : -1;
+        }
     }
     // The cells robot i of the last arbitrate() keeps out of (its passage's; none unless it goes around).
     ClosedCells closed_to(int i) const {
@@ -3990,7 +3985,6 @@ private:
         int robot, passage, mouth;  // a parked robot sent out ahead of the holder of `passage`, in by `mouth` (make_way)
     };
     std::vector<SentOut> sent_out_;  // arbitrate: follow_order's heads of lines
-    std::vector<int> parker_ahead_;  // arbitrate: per robot going on to a goal in a passage, the robot ahead of it there that passes its goal, or -1
     // order_pockets: robots whose goals may close a way, the travelling robots' routes (robot b's
     // cells routes_[route_begin_[b], route_begin_[b + 1])), per grid cell the stamp of the last
     // flood that saw it and of the pockets marked for the robot being placed, a flood's cells, the
@@ -4752,7 +4746,7 @@ inline ExpertTraffic passage_traffic(const TrafficConfig& traffic = expert_traff
             s.at_goal[i] = world.at_goal(ag[i]);
         }
         s.control.arbitrate(guide, world.map(), n, s.pos.data(), s.goal.data(), s.at_goal.data(), s.turn, s.point, s.ids.data());
-        s.control.follow_order(s.turn, s.pos.data(), s.ahead);
+        s.control.follow_order(guide, s.turn, s.pos.data(), s.goal.data(), s.ahead);
         for (int i = 0; i < n; ++i) {
             if (s.turn[i] == PassageControl::kWait) heading[i] = ExpertHeading{s.point[i], {}, true};
             if (s.turn[i] == PassageControl::kGoAround) heading[i] = ExpertHeading{s.goal[i], s.control.closed_to(i), true};

@@ -76,11 +76,14 @@ std::vector<Vec2> walk_route(const WorldMap& map, Vec2 from, Vec2 to, ClosedCell
 
 // follow_order's `ahead` for two robots that both go on (required).
 std::vector<int> ahead_of_two(const WorldMap& map, const std::vector<Vec2>& pos, const std::vector<Vec2>& goal) {
+    RouteGuide guide;
     PassageControl pc;
-    const Turns turns = arbitrate(map, pos, goal, {}, &pc);
-    REQUIRE(turns.wait == std::vector<char>{kGoOn, kGoOn});
+    std::vector<char> at_goal(pos.size(), 0), turn;
+    std::vector<Vec2> point;
+    pc.arbitrate(guide, map, (int)pos.size(), pos.data(), goal.data(), at_goal.data(), turn, point);
+    REQUIRE(turn == std::vector<char>{kGoOn, kGoOn});
     std::vector<int> ahead;
-    pc.follow_order(turns.wait, pos.data(), ahead);
+    pc.follow_order(guide, turn, pos.data(), goal.data(), ahead);
     return ahead;
 }
 
@@ -685,7 +688,7 @@ TEST_CASE("passages: follow_order lines robots up through a corridor, the one fa
     pc.arbitrate(guide, map, (int)pos.size(), pos.data(), goal.data(), at_goal.data(), turn, point);
     REQUIRE(turn == std::vector<char>{kGoOn, kGoOn, kGoOn, kWait, kWait});  // 3 is sent out ahead of them, 4 waits
     std::vector<int> ahead;
-    pc.follow_order(turn, pos.data(), ahead);
+    pc.follow_order(guide, turn, pos.data(), goal.data(), ahead);
     CHECK(ahead == std::vector<int>{1, 3, 0, -1, -1});  // 2 after 0 after 1 after 3; 4 in no line
 }
 
