@@ -1942,11 +1942,6 @@ struct SceneBatch {
     std::vector<float> goal_final;  // (A) 1: the goal is the agent's real goal; 0: a route subgoal (never pinned)
     std::vector<float> priority;    // (A) > 0: the guidance's push between two agents moves the higher one less (window_cost)
     std::vector<uint64_t> noise_seed;  // (B) or empty: scene b's sampling noise from its own stream (decentralised planning)
-    // Robots outside the scenes, near them (guidance.outside): the guidance keeps scene b's windows
-    // clear of their expected waypoints outside[outside_first[b] .. outside_first[b + 1]) (world
-    // units, H per robot: waypoint t of each robot at its t-th). Empty outside_first: none.
-    std::vector<int> outside_first;  // (B + 1) or empty
-    std::vector<Vec2> outside;
 
     int agents() const { return B * n; }
     // Agent a's position and goal in world units, decoded from pose.
@@ -1973,8 +1968,6 @@ struct SceneBatch {
         goal_final.assign((size_t)B * n, 1.0f);
         priority.assign((size_t)B * n, 1.0f);
         noise_seed.clear();
-        outside_first.clear();
-        outside.clear();
     }
     void resize(int B_, int n_, const ModelConfig& c, bool shared = false) { resize(B_, n_, c.grid, c.local_grid, shared); }
 };
@@ -3074,8 +3067,7 @@ constexpr double kKeepRightFade = 0.05;
 // (unit, fading below kKeepRightFade), b by the opposite; in `grad` as minus those pushes. The
 // returned cost does not change. Unequal SceneBatch::priority splits both pair terms of `grad`:
 // a takes 2 p_b / (p_a + p_b) of its share, b 2 p_a / (p_a + p_b) (the higher gives way less;
-// then not the cost's gradient either). Robots outside the scene (SceneBatch::outside) make
-// pairs with each agent of it as well, the agent taking an equal share; they are not moved.
+// then not the cost's gradient either).
 inline double window_cost(const SceneBatch& batch, int s, const Mat& x, const ModelConfig& c, const WindowCost& w,
                           const MapFields& fields, Mat* grad = nullptr, float keep_right = 0) {
     const DistanceField& field = fields.clearance;
@@ -3093,29 +3085,6 @@ inline double window_cost(const SceneBatch& batch, int s, const Mat& x, const Mo
     };
     double cost = 0;
     const double reach = 2.0 * w.radius + w.agent_margin, keep = (double)w.radius + w.map_margin, smooth2 = 1e-4;
-    // Agent a's waypoint t and a robot at q moving by v between its waypoints t - 1 and t + 1:
-    // b >= 0 is scene agent b, pushed the other way; -1, a robot outside the scene (not moved).
-    auto pair = [&](int a, int t, double qx, double qy, double vbx, double vby, double share_a, int b, double share_b) {
-        const double dx = P(a, t, 0) - qx, dy = P(a, t, 1) - qy, dist = std::sqrt(dx * dx + dy * dy);
-        const double h = reach - dist;
-        if (h <= 0) return;
-        cost += w.agent_weight * h * h;
-        if (grad && dist > 1e-12) {
-            const double g = -2.0 * w.agent_weight * h / dist;  // d cost / d P_a = g * (P_a - P_b)
-            add(a, t, share_a * g * dx, share_a * g * dy);
-            if (b >= 0) add(b, t, -share_b * g * dx, -share_b * g * dy);
-        }
-        if (grad && keep_right > 0) {
-            // A head-on pair's push above is along the line between them, which can only
-            // stop both; a push to the right of their relative motion makes them pass.
-            const int t1 = std::min(t + 1, H - 1);
-            const double vx = P(a, t1, 0) - P(a, t - 1, 0) - vbx;
-            const double vy = P(a, t1, 1) - P(a, t - 1, 1) - vby;
-            const double k = keep_right * h / std::max(std::sqrt(vx * vx + vy * vy), kKeepRightFade);
-            add(a, t, -share_a * k * vy, share_a * k * vx);  // a's push k (vy, -vx): v turned right
-            if (b >= 0) add(b, t, share_b * k * vy, -share_b * k * vx);
-        }
-    };
     for (int i = 0; i < n; ++i) {
         const int a = s * n + i;
         if (batch.agent_mask[a] == 0) continue;
@@ -3125,18 +3094,27 @@ inline double window_cost(const SceneBatch& batch, int s, const Mat& x, const Mo
             // The pair's pushes split by priority (2 pb / (pa + pb) of a's, equal: 1 each).
             const double pa = batch.priority[a], pb = batch.priority[b], share_a = 2 * pb / (pa + pb), share_b = 2 * pa / (pa + pb);
             for (int t = 1; t < H; ++t) {
-                const int t1 = std::min(t + 1, H - 1);
-                pair(a, t, P(b, t, 0), P(b, t, 1), P(b, t1, 0) - P(b, t - 1, 0), P(b, t1, 1) - P(b, t - 1, 1), share_a, b, share_b);
-            }
-        }
-        if (!batch.outside_first.empty())  // robots outside the scene, an equal share
-            for (int o = batch.outside_first[s]; o < batch.outside_first[s + 1]; o += H) {
-                const Vec2* q = batch.outside.data() + o;
-                for (int t = 1; t < H; ++t) {
+                const double dx = P(a, t, 0) - P(b, t, 0), dy = P(a, t, 1) - P(b, t, 1), dist = std::sqrt(dx * dx + dy * dy);
+                const double h = reach - dist;
+                if (h <= 0) continue;
+                cost += w.agent_weight * h * h;
+                if (grad && dist > 1e-12) {
+                    const double g = -2.0 * w.agent_weight * h / dist;  // d cost / d P_a = g * (P_a - P_b)
+                    add(a, t, share_a * g * dx, share_a * g * dy);
+                    add(b, t, -share_b * g * dx, -share_b * g * dy);
+                }
+                if (grad && keep_right > 0) {
+                    // A head-on pair's push above is along the line between them, which can only
+                    // stop both; a push to the right of their relative motion makes them pass.
                     const int t1 = std::min(t + 1, H - 1);
-                    pair(a, t, q[t].x, q[t].y, q[t1].x - q[t - 1].x, q[t1].y - q[t - 1].y, 1.0, -1, 0.0);
+                    const double vx = P(a, t1, 0) - P(a, t - 1, 0) - (P(b, t1, 0) - P(b, t - 1, 0));
+                    const double vy = P(a, t1, 1) - P(a, t - 1, 1) - (P(b, t1, 1) - P(b, t - 1, 1));
+                    const double k = keep_right * h / std::max(std::sqrt(vx * vx + vy * vy), kKeepRightFade);
+                    add(a, t, -share_a * k * vy, share_a * k * vx);  // a's push k (vy, -vx): v turned right
+                    add(b, t, share_b * k * vy, -share_b * k * vx);
                 }
             }
+        }
         for (int t = 1; t < H; ++t) {  // robots too close to the map
             double gx = 0, gy = 0;
             const double h = keep - field.value(P(a, t, 0), P(a, t, 1), &gx, &gy);
@@ -3181,23 +3159,15 @@ inline void size_like(const SceneBatch& src, int B, SceneBatch& dst) {
     dst.goal_final.resize((size_t)B * n);
     dst.priority.resize((size_t)B * n);
     dst.noise_seed.resize(src.noise_seed.empty() ? 0 : B);
-    dst.outside_first.assign(src.outside_first.empty() ? 0 : 1, 0);  // copy_scene appends, scene after scene
-    dst.outside.clear();
     if (src.shared_grid) dst.grid = src.grid;
 }
-// Scene b of src as scene d of dst (sized by size_like), its noise seed included; scenes are
-// copied in order d = 0, 1, ... (the outside robots are appended).
+// Scene b of src as scene d of dst (sized by size_like), its noise seed included.
 inline void copy_scene(const SceneBatch& src, int b, SceneBatch& dst, int d) {
     const int n = src.n;
     const long G2 = src.grid.cols() / src.grid_scenes(), L = src.agents() ? src.local.cols() / src.agents() : 0;
     dst.count[d] = src.count[b];
     dst.origin[d] = src.origin[b];
     if (!src.noise_seed.empty()) dst.noise_seed[d] = src.noise_seed[b];
-    if (!src.outside_first.empty()) {
-        MADBP_ASSERT((int)dst.outside_first.size() == d + 1);
-        dst.outside.insert(dst.outside.end(), src.outside.begin() + src.outside_first[b], src.outside.begin() + src.outside_first[b + 1]);
-        dst.outside_first.push_back((int)dst.outside.size());
-    }
     if (!src.shared_grid) dst.grid.middleCols((long)d * G2, G2) = src.grid.middleCols((long)b * G2, G2);
     for (int i = 0; i < n; ++i) {
         const int from = b * n + i, to = d * n + i;
@@ -3556,9 +3526,6 @@ struct PlannerConfig {
         // >= 1: in a team larger than a scene, each scene's robot of first priority (priority_order:
         // longest way when first seen) is pushed this many times less than its last (1: all alike).
         float priority = 4;
-        // In a team larger than a scene, each scene's windows are also kept clear of this many
-        // robots outside it, the nearest, where their last windows take them (0: off).
-        int outside = 0;
         WindowCost cost;         // the cost the guidance descends and best-of-k ranks
     } guidance;
     TrafficConfig traffic;
@@ -3687,8 +3654,6 @@ inline const std::vector<PlannerSetting>& planner_settings() {
          +[](C& c) -> float& { return c.guidance.keep_right; }},
         {"guidance.priority", 1, 1e6, "in a team larger than a scene, each scene's first robot in priority is pushed this many times less than its last (1 = all alike)", nullptr, 0,
          +[](C& c) -> float& { return c.guidance.priority; }},
-        {"guidance.outside", 0, 64, "in a team larger than a scene, each scene's windows keep clear of this many robots outside it, the nearest (0 = off)", nullptr, 0,
-         +[](C& c) -> int& { return c.guidance.outside; }},
         {"guidance.agent_weight", 0, 1e6, "cost weight of robots closer than 2 radius + agent_margin", nullptr, 0,
          +[](C& c) -> float& { return c.guidance.cost.agent_weight; }},
         {"guidance.map_weight", 0, 1e6, "cost weight of robots closer than radius + map_margin to the map", nullptr, 0,
@@ -5205,7 +5170,6 @@ private:
     std::vector<int> steps_, members_, ids_, order_;
     std::map<int, std::pair<Vec2, double>> first_seen_;  // by id: the goal and its distance when first seen (set_priorities)
     std::vector<double> priority_key_;                   // set_priorities: a scene's robots' keys
-    std::vector<std::pair<double, int>> outside_near_;   // set_outside: a scene's candidates (squared distance, robot)
     // The scenes of a plan (choose_scenes): scene b holds robots scene_robots_[b*K .. b*K + m)
     // (-1 after them), nearest to its seed scene_seed_[b] first; robot i's window is column
     // window_col_[i] of x_ (-1: none).
@@ -5329,7 +5293,6 @@ private:
             batch_.count[b] = m;
             set_priorities(b, m, robots, /*crowd*/ K < n);
         }
-        set_outside(n, K);
         if (first_seen_.size() > 2 * (size_t)n + 64)  // robots gone: keep the keys of this plan's (bounded memory)
             for (auto it = first_seen_.begin(); it != first_seen_.end();)
                 it = std::find(ids_.begin(), ids_.end(), it->first) == ids_.end() ? first_seen_.erase(it) : std::next(it);
@@ -5357,46 +5320,6 @@ private:
         }
         priority_order(m, [&](int k) { return at_goal_[robots[k]] != 0; }, [&](int k) { return priority_key_[k]; }, [&](int k) { return ids_[robots[k]]; }, order_);
         for (int rank = 0; rank < m; ++rank) batch_.priority[(size_t)b * K + order_[rank]] = (float)priority_weight_of(rank, m, first);
-    }
-
-    // batch_.outside (guidance.outside): for each scene, its `outside` nearest robots outside it
-    // within reach of its robots (two window reaches and the guidance's reach), each with
-    // the waypoints its last window gives (standing still without one).
-    void set_outside(int n, int K) {
-        const ModelConfig& c = model_.config;
-        const int G = settings.guidance.outside, H = c.horizon, B = batch_.B;
-        batch_.outside_first.clear();
-        batch_.outside.clear();
-        if (G <= 0 || K >= n) return;
-        const WindowCost& w = settings.guidance.cost;
-        const double reach = 2.0 * c.window_scale * settings.sampler.x0_clip + 2.0 * w.radius + w.agent_margin;
-        batch_.outside_first.assign(1, 0);
-        for (int b = 0; b < B; ++b) {
-            const int* robots = scene_robots_.data() + (size_t)b * K;
-            const int m = batch_.count[b];
-            outside_near_.clear();
-            for (int i = 0; i < n; ++i) {
-                double d2 = reach * reach;
-                bool inside = false;
-                for (int k = 0; k < m && !inside; ++k) {
-                    inside = robots[k] == i;
-                    const Vec2 d = pos_[i] - pos_[robots[k]];
-                    d2 = std::min(d2, dot(d, d));
-                }
-                if (!inside && d2 < reach * reach) outside_near_.push_back({d2, i});
-            }
-            const size_t keep = std::min(outside_near_.size(), (size_t)G);
-            std::partial_sort(outside_near_.begin(), outside_near_.begin() + keep, outside_near_.end());
-            for (size_t o = 0; o < keep; ++o) {
-                const int i = outside_near_[o].second, j = last_index(i);
-                const long elapsed = now_ - last_t_;
-                const bool moving = j >= 0 && last_t_ >= 0 && elapsed >= 1 && elapsed < (long)last_windows_[j].size();
-                batch_.outside.push_back(pos_[i]);
-                for (int t = 1; t < H; ++t)
-                    batch_.outside.push_back(moving ? waypoint_now(last_windows_[j], (int)elapsed + t * c.waypoint_stride) : pos_[i]);
-            }
-            batch_.outside_first.push_back((int)batch_.outside.size());
-        }
     }
 
     // Robot b's neighbourhood into members_[0, m), returns m: b and its K-1 nearest (nearest
@@ -5507,18 +5430,13 @@ private:
             if (e) std::rethrow_exception(e);
     }
 
-    // Robot i's index in the last plan's windows (last_ids_), -1 without one.
-    int last_index(int i) const {
-        const int id = ids_[i];
-        if (id < 0) return -1;
-        const size_t n = last_ids_.size();
-        const size_t j = (size_t)i < n && last_ids_[i] == id ? (size_t)i : std::find(last_ids_.begin(), last_ids_.end(), id) - last_ids_.begin();
-        return j < n ? (int)j : -1;
-    }
     // Agent a's columns of warm_ from robot i's last window (detail::warm_window); false without one.
     bool warm_from_last(int i, int a) {
-        const int j = last_index(i);
-        return j >= 0 && detail::warm_window(last_windows_[j], now_ - last_t_, pos_[i], model_.config, warm_, (long)a * model_.config.horizon);
+        const int id = ids_[i];
+        if (id < 0) return false;
+        const size_t n = last_ids_.size();
+        const size_t j = (size_t)i < n && last_ids_[i] == id ? (size_t)i : std::find(last_ids_.begin(), last_ids_.end(), id) - last_ids_.begin();
+        return j < n && detail::warm_window(last_windows_[j], now_ - last_t_, pos_[i], model_.config, warm_, (long)a * model_.config.horizon);
     }
 
     // Agent a's columns of warm_ as a straight line from robot i toward route_[i] (line_start):

@@ -401,10 +401,6 @@ TEST_CASE("window cost: the guidance gradient matches central finite differences
     for (int trial = 0; trial < 4; ++trial) {
         SceneBatch s = scene_batch(c, map, 2, 4, {4, 3}, rng);
         w.geodesic = trial % 2 == 0;  // the goal term around the obstacles, or straight
-        if (trial >= 2) {  // robots outside the scenes: scene 0 two, scene 1 none
-            s.outside_first = {0, 2 * c.horizon, 2 * c.horizon};
-            for (int o = 0; o < 2 * c.horizon; ++o) s.outside.push_back({rng.uniform(-0.6, 0.6), rng.uniform(-0.6, 0.6)});
-        }
         if (w.geodesic) fields.add_goals(s, c, w.radius);
         // Windows that bunch the robots together near the obstacles, so every term is active.
         Mat x(2, (long)c.horizon * s.agents());
@@ -552,37 +548,6 @@ TEST_CASE("window cost: priorities split a pair's pushes, the higher robot moved
     Mat same = Mat::Zero(2, x.cols());
     window_cost(s, 0, x, c, w, open, &same, K);
     CHECK(same == equal);
-}
-
-TEST_CASE("window cost: a robot outside the scene is a scene robot that is not moved, an equal share to the agent") {
-    const ModelConfig c = tiny_config();
-    const SceneBatch pair = swap_pair(c);
-    MapFields open;
-    open.set_map(WorldMap{});
-    const int H = c.horizon;
-    const Mat x = through_each_other(c);
-    WindowCost pairs_only;
-    pairs_only.goal_weight = 0;
-    pairs_only.map_weight = 0;
-    const float K = 50;
-    Mat both = Mat::Zero(2, x.cols());
-    const double cost = window_cost(pair, 0, x, c, pairs_only, open, &both, K);
-    CHECK(cost > 0);
-    // a alone in its scene, b outside it on b's window.
-    SceneBatch alone;
-    alone.resize(1, 1, c, true);
-    encode_map(alone, 0, WorldMap{}, c);
-    encode_agent(alone, 0, 0, {-0.3, 0}, {0.3, 0}, WorldMap{}, c);
-    alone.count[0] = 1;
-    alone.outside_first = {0, H};
-    for (int t = 0; t < H; ++t) alone.outside.push_back(pair.position(1, c) + Vec2{(double)c.window_scale * x(0, (long)H + t), (double)c.window_scale * x(1, (long)H + t)});
-    Mat one = Mat::Zero(2, H);
-    CHECK(window_cost(alone, 0, x.leftCols(H), c, pairs_only, open, &one, K) == doctest::Approx(cost).epsilon(1e-12));
-    CHECK(one.isApprox(both.leftCols(H), 1e-5f));
-    CHECK(one.norm() > 0);
-    // Without outside_first the outside robots are not read.
-    alone.outside_first.clear();
-    CHECK(window_cost(alone, 0, x.leftCols(H), c, pairs_only, open) == 0);
 }
 
 TEST_CASE("planner: guidance.priority ranks a scene's robots by their way to go when first seen, in teams larger than a scene") {
