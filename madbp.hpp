@@ -3478,6 +3478,8 @@ struct TrafficConfig {
     // (docs/experiments.md, "Routes around crowds").
     double crowd_weight = 0;
     double crowd_cell = 0.6;       // the coarse cells' side, world units
+    double crowd_time = 0;         // > 0: a route counts in a cell only within about this many steps of
+                                   // when its robot is due there at cruise (0: wherever it passes)
 };
 
 // Everything a plan uses, each default written once, here: who plans with whom, the sampler, its
@@ -3704,6 +3706,8 @@ inline const std::vector<PlannerSetting>& planner_settings() {
          +[](C& c) -> double& { return c.traffic.crowd_weight; }},
         {"traffic.crowd_cell", 0.2, 100, "cell side of the grid routes around crowds are made on (world units)", nullptr, 0,
          +[](C& c) -> double& { return c.traffic.crowd_cell; }},
+        {"traffic.crowd_time", 0, 1000, "routes around crowds count a robot in a cell only within this many steps of its time there (0 = whenever)", nullptr, 0,
+         +[](C& c) -> double& { return c.traffic.crowd_time; }},
         {"follower.replan_every", 1, 1000, "steps executed per plan (m)", nullptr, 0,
          +[](C& c) -> int& { return c.follower.replan_every; }},
         {"follower.safety_filter", 0, 1, "the SPEC 3.2 safety filter runs after the tracker", nullptr, 0,
@@ -4776,13 +4780,21 @@ inline ExpertTraffic passage_traffic(const TrafficConfig& traffic = expert_traff
 //     nearest it, then for its goal once that is the goal's cell; when the route, as made, strays
 //     less than a cell from the straight way to the goal, for the goal itself (so the route
 //     changes nothing where there is no crowd to go around).
-// Memory: a few floats a coarse cell (at most kCrowdMaxSide^2) and each robot's route cells.
+// With crowd_time W > 0 a route counts in a cell only about when its robot is due there: the
+// demand is kept per time bin of W steps (kCrowdBins of them, from now), a route's cell adding to
+// the bin of the step its robot reaches it at cruise (ExpertParams::cell a step along the route's
+// points) and the bins either side, and a step of the search into a cell reads the bin of the
+// time it arrives. So routes that cross a middle cell at different times leave each other
+// straight, as the expert's reservations do, and only robots due together spread.
+// Memory: a few floats a coarse cell (at most kCrowdMaxSide^2, times kCrowdBins with crowd_time)
+// and each robot's route cells.
 class CrowdRoutes {
 public:
     static constexpr int kCrowdMaxSide = 96;   // coarse cells a side (a huge world gets larger cells)
     static constexpr int kCrowdReroute = 40;   // steps a route is kept before it is made again
     static constexpr int kCrowdAhead = 2;      // a robot heads this many route cells past its own
     static constexpr int kCrowdMinWay = 4;     // a robot fewer cells than this from its goal heads for it
+    static constexpr int kCrowdBins = 16;      // time bins of crowd_time steps each (beyond them: not counted)
 
     // Where each of the n robots heads (target[i]: goal[i] where its route goes straight there).
     void update(RouteGuide& guide, const WorldMap& map, const TrafficConfig& p, int n, const Vec2* pos, const Vec2* goal,
@@ -4803,19 +4815,19 @@ public:
             if (it == routes_.end()) continue;
             Route& r = it->second;
             index_[i] = progress(r, pos[i]);
-            if (index_[i] >= 0) add(r, index_[i], +1);
+            if (index_[i] >= 0) add(r, index_[i], pos[i], +1);
         }
         for (int i = 0; i < n; ++i) {
             if (at_goal[i]) continue;
             Route& r = routes_[ids[i]];
             const bool stale = index_[i] < 0 || !(r.goal == goal[i]) || step < r.made || step - r.made >= kCrowdReroute;
             if (stale) {
-                if (index_[i] >= 0) add(r, index_[i], -1);
+                if (index_[i] >= 0) add(r, index_[i], pos[i], -1);
                 if (norm(goal[i] - pos[i]) > kCrowdMinWay * cell_ && open_ground(guide, map, pos[i], goal[i])) route(r, pos[i], goal[i], p.crowd_weight);
                 else r.cells.assign(1, cell_of(goal[i]));  // near, or a winding way: its map route, as without crowds
                 r.goal = goal[i], r.made = step, r.straight = along_straight_way(r, pos[i], goal[i]);
                 index_[i] = 0;
-                add(r, 0, +1);
+                add(r, 0, pos[i], +1);
             }
             if (!r.straight && index_[i] + kCrowdAhead < (int)r.cells.size() - 1) target[i] = point_[r.cells[index_[i] + kCrowdAhead]];
         }
@@ -4834,11 +4846,14 @@ private:
     std::vector<Vec2> point_;      // per coarse cell: where a route through it passes
     std::vector<float> area_;      // per coarse cell: the share of it a robot's centre fits in (0: none)
     std::vector<uint8_t> links_;   // per coarse cell: bit d, the step to neighbour d (kDr, kDc) is clear
-    std::vector<float> demand_;    // per coarse cell: routes through it
+    std::vector<float> demand_;    // per time bin and coarse cell (bin * side^2 + cell): routes through it
+    int bins_ = 1;                 // time bins: 1 (routes count whenever) or kCrowdBins
+    double bin_steps_ = 0;         // steps a time bin spans (crowd_time; 0: one bin for all time)
     std::map<int, Route> routes_;  // by robot id
     std::vector<int> index_;       // per robot of this call: its place on its route (-1: none)
     std::vector<int> present_;     // this call's ids, sorted
-    std::vector<double> cost_;     // Dijkstra's scratch: costs, the cell each came from, the heap
+    std::vector<double> cost_;     // Dijkstra's scratch: costs, way lengths, the cell each came from, the heap
+    std::vector<double> way_;
     std::vector<int> from_;
     std::vector<std::pair<double, int>> heap_;
     static constexpr int kDr[8] = {-1, -1, -1, 0, 0, 1, 1, 1}, kDc[8] = {-1, 0, 1, -1, 1, -1, 0, 1};
@@ -4853,8 +4868,10 @@ private:
     void set_map(RouteGuide& guide, const WorldMap& map, const TrafficConfig& p) {
         const double h = map.half_size;
         const double cell = std::max(p.crowd_cell, 2 * h / kCrowdMaxSide);
-        if (side_ > 0 && map == map_ && std::abs(cell - cell_) < 1e-12) return;
+        if (side_ > 0 && map == map_ && std::abs(cell - cell_) < 1e-12 && p.crowd_time == bin_steps_) return;
         map_ = map;
+        bin_steps_ = p.crowd_time;
+        bins_ = bin_steps_ > 0 ? kCrowdBins : 1;
         side_ = std::max(1, (int)std::ceil(2 * h / cell - 1e-9));
         cell_ = 2 * h / side_;
         lo_ = -h;
@@ -4863,7 +4880,7 @@ private:
         point_.assign(cells, Vec2{});
         area_.assign(cells, 0.f);
         links_.assign(cells, 0);
-        demand_.assign(cells, 0.f);
+        demand_.assign((size_t)cells * bins_, 0.f);
         const ClearanceGrid& g = guide.grid(map);
         std::vector<int> fits(cells, 0), all(cells, 0);
         std::vector<double> best(cells, std::numeric_limits<double>::infinity());
@@ -4898,9 +4915,21 @@ private:
         const double chebyshev = std::max(std::fabs(goal.x - a.x), std::fabs(goal.y - a.y)) / g.cell;
         return steps < RouteGuide::kRouteUnreachable && steps <= kCrowdOpenRatio * chebyshev + 2 + guide.narrow_cost;  // a robot may stand in one narrow cell
     }
-    // Adds `sign` to the demand of r's cells from index `from` on.
-    void add(const Route& r, int from, float sign) {
-        for (size_t k = (size_t)from; k < r.cells.size(); ++k) demand_[r.cells[k]] += sign;
+    // The time bin a robot that has come `way` world units along its route is in (bins_: beyond).
+    int bin_of(double way) const {
+        if (bins_ == 1) return 0;
+        return (int)std::min<double>(bins_, std::floor(way / ExpertParams{}.cell / bin_steps_));
+    }
+    // Adds `sign` to the demand of r's cells from index `from` on, for its robot at q: with time
+    // bins, each cell in the bin of its arrival and the bins either side.
+    void add(const Route& r, int from, Vec2 q, float sign) {
+        const size_t cells = (size_t)side_ * side_;
+        double way = 0;
+        for (size_t k = (size_t)from; k < r.cells.size(); ++k) {
+            way += norm(point_[r.cells[k]] - q), q = point_[r.cells[k]];
+            const int b = bin_of(way);
+            for (int bb = std::max(0, b - 1); bb <= std::min(bins_ - 1, b + 1); ++bb) demand_[bb * cells + r.cells[k]] += sign;
+        }
     }
     // The index of r's cell whose centre is nearest q, or -1 when q strayed more than a cell and
     // a half from all of them (the route is made again).
@@ -4918,6 +4947,7 @@ private:
     void route(Route& r, Vec2 a, Vec2 goal, double weight) {
         const int cells = side_ * side_, start = cell_of(a), end = cell_of(goal);
         cost_.assign(cells, std::numeric_limits<double>::infinity());
+        way_.assign(cells, 0.0);
         from_.assign(cells, -1);
         const auto later = std::greater<std::pair<double, int>>();  // a min-heap
         heap_.assign(1, {0.0, start});
@@ -4935,9 +4965,12 @@ private:
                 if (r2 < 0 || r2 >= side_ || c2 < 0 || c2 >= side_) continue;
                 const int q2 = r2 * side_ + c2;
                 if (area_[q2] == 0) continue;
-                const double step = norm(point_[q2] - (q == start ? a : point_[q])) * (1 + weight * demand_[q2] / std::max(area_[q2], 0.25f));
+                const double length = norm(point_[q2] - (q == start ? a : point_[q]));
+                const int b = bin_of(way_[q] + length);
+                const float demand = b < bins_ ? demand_[(size_t)b * cells + q2] : 0.f;
+                const double step = length * (1 + weight * demand / std::max(area_[q2], 0.25f));
                 if (d + step < cost_[q2]) {
-                    cost_[q2] = d + step, from_[q2] = q;
+                    cost_[q2] = d + step, way_[q2] = way_[q] + length, from_[q2] = q;
                     heap_.push_back({d + step, q2});
                     std::push_heap(heap_.begin(), heap_.end(), later);
                 }

@@ -123,7 +123,7 @@ TEST_CASE("scale: the planner's workspace is bounded by its chunks, linear in th
 namespace {
 // CrowdRoutes' targets for robots 0..n-1 in an empty world of half-size 4.8.
 std::vector<Vec2> crowd_targets(const std::vector<Vec2>& pos, const std::vector<Vec2>& goal, double weight, long step = 0,
-                                CrowdRoutes* routes = nullptr) {
+                                CrowdRoutes* routes = nullptr, double crowd_time = 0) {
     CrowdRoutes own;
     CrowdRoutes& cr = routes ? *routes : own;
     RouteGuide guide;
@@ -131,6 +131,7 @@ std::vector<Vec2> crowd_targets(const std::vector<Vec2>& pos, const std::vector<
     map.half_size = 4.8;
     TrafficConfig traffic;
     traffic.crowd_weight = weight;
+    traffic.crowd_time = crowd_time;
     const int n = (int)pos.size();
     std::vector<char> at_goal(n, 0);
     std::vector<int> ids(n);
@@ -163,6 +164,23 @@ TEST_CASE("crowds: a robot whose straight way runs through others' routes goes a
     const std::vector<Vec2> later = crowd_targets(moved, goal, 0.5, 8, &routes);
     CHECK(later.back().x > around.back().x);  // the next point along the same detour
     CHECK(std::fabs(later.back().y) > 0.25);
+}
+
+TEST_CASE("crowds: with crowd_time, a robot goes around only the routes due where it crosses when it is") {
+    // 24 robots go east from x = -1 along y near 0: they pass x = 0 about 28-45 steps from now.
+    std::vector<Vec2> pos, goal;
+    for (int k = 0; k < 24; ++k) pos.push_back({-1.0, -0.25 + 0.02 * k}), goal.push_back({4.0, -0.25 + 0.02 * k});
+    // The last crosses their lane at x = 0, going south: from y = 4.5 it is due there after ~125
+    // steps, long after them; from y = 1.2, with them.
+    auto last_target = [&](double from_y, double crowd_time) {
+        std::vector<Vec2> p = pos, g = goal;
+        p.push_back({0.0, from_y}), g.push_back({0.0, -4.0});
+        return crowd_targets(p, g, 0.5, 0, nullptr, crowd_time).back();
+    };
+    const Vec2 south{0.0, -4.0};
+    CHECK(!(last_target(4.5, 0) == south));   // routes counted whenever: it goes around the lane
+    CHECK(last_target(4.5, 10) == south);     // counted when they are due: the lane is clear by then
+    CHECK(!(last_target(1.2, 10) == south));  // due together: it goes around
 }
 
 TEST_CASE("crowds: routes around crowds leave a team that fits one scene as it was, and plan a larger one") {
