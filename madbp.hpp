@@ -3478,6 +3478,7 @@ struct TrafficConfig {
     // (docs/experiments.md, "Routes around crowds").
     double crowd_weight = 0;
     double crowd_cell = 0.6;       // the coarse cells' side, world units
+    double crowd_detour = 0;       // > 0: a route around crowds longer than this times the straight way is not taken
     double crowd_time = 0;         // > 0: a route counts in a cell only within about this many steps of
                                    // when its robot is due there at cruise (0: wherever it passes)
 };
@@ -3706,6 +3707,8 @@ inline const std::vector<PlannerSetting>& planner_settings() {
          +[](C& c) -> double& { return c.traffic.crowd_weight; }},
         {"traffic.crowd_cell", 0.2, 100, "cell side of the grid routes around crowds are made on (world units)", nullptr, 0,
          +[](C& c) -> double& { return c.traffic.crowd_cell; }},
+        {"traffic.crowd_detour", 0, 100, "routes around crowds: a detour longer than this times the straight way is not taken (0 = any)", nullptr, 0,
+         +[](C& c) -> double& { return c.traffic.crowd_detour; }},
         {"traffic.crowd_time", 0, 1000, "routes around crowds count a robot in a cell only within this many steps of its time there (0 = whenever)", nullptr, 0,
          +[](C& c) -> double& { return c.traffic.crowd_time; }},
         {"follower.replan_every", 1, 1000, "steps executed per plan (m)", nullptr, 0,
@@ -4823,7 +4826,10 @@ public:
             const bool stale = index_[i] < 0 || !(r.goal == goal[i]) || step < r.made || step - r.made >= kCrowdReroute;
             if (stale) {
                 if (index_[i] >= 0) add(r, index_[i], pos[i], -1);
-                if (norm(goal[i] - pos[i]) > kCrowdMinWay * cell_ && open_ground(guide, map, pos[i], goal[i])) route(r, pos[i], goal[i], p.crowd_weight);
+                if (norm(goal[i] - pos[i]) > kCrowdMinWay * cell_ && open_ground(guide, map, pos[i], goal[i])) {
+                    const double way = route(r, pos[i], goal[i], p.crowd_weight);
+                    if (p.crowd_detour > 0 && way > p.crowd_detour * norm(goal[i] - pos[i]) + cell_) route(r, pos[i], goal[i], 0);
+                }
                 else r.cells.assign(1, cell_of(goal[i]));  // near, or a winding way: its map route, as without crowds
                 r.goal = goal[i], r.made = step, r.straight = along_straight_way(r, pos[i], goal[i]);
                 index_[i] = 0;
@@ -4944,7 +4950,8 @@ private:
     }
     // Dijkstra over the coarse cells from a's to goal's: a step costs its length times
     // 1 + weight x demand / area of the cell stepped into (an area below a quarter counts a quarter).
-    void route(Route& r, Vec2 a, Vec2 goal, double weight) {
+    // Returns the route's length through its cells' points (0 when there is no coarse way).
+    double route(Route& r, Vec2 a, Vec2 goal, double weight) {
         const int cells = side_ * side_, start = cell_of(a), end = cell_of(goal);
         cost_.assign(cells, std::numeric_limits<double>::infinity());
         way_.assign(cells, 0.0);
@@ -4979,10 +4986,11 @@ private:
         r.cells.clear();
         if (!std::isfinite(cost_[end])) {  // no coarse way: the goal's own cell, so the robot heads straight for it
             r.cells.push_back(end);
-            return;
+            return 0;
         }
         for (int q = end; q >= 0; q = from_[q]) r.cells.push_back(q);
         std::reverse(r.cells.begin(), r.cells.end());
+        return way_[end];
     }
     // Route r from q keeps within a cell of the straight way to the goal all along. Decided when
     // the route is made, not every plan: a robot whose heading flipped between its goal and its

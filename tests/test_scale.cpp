@@ -122,16 +122,13 @@ TEST_CASE("scale: the planner's workspace is bounded by its chunks, linear in th
 
 namespace {
 // CrowdRoutes' targets for robots 0..n-1 in an empty world of half-size 4.8.
-std::vector<Vec2> crowd_targets(const std::vector<Vec2>& pos, const std::vector<Vec2>& goal, double weight, long step = 0,
-                                CrowdRoutes* routes = nullptr, double crowd_time = 0) {
+std::vector<Vec2> crowd_targets(const std::vector<Vec2>& pos, const std::vector<Vec2>& goal, const TrafficConfig& traffic,
+                                long step = 0, CrowdRoutes* routes = nullptr) {
     CrowdRoutes own;
     CrowdRoutes& cr = routes ? *routes : own;
     RouteGuide guide;
     WorldMap map;
     map.half_size = 4.8;
-    TrafficConfig traffic;
-    traffic.crowd_weight = weight;
-    traffic.crowd_time = crowd_time;
     const int n = (int)pos.size();
     std::vector<char> at_goal(n, 0);
     std::vector<int> ids(n);
@@ -139,6 +136,12 @@ std::vector<Vec2> crowd_targets(const std::vector<Vec2>& pos, const std::vector<
     std::vector<Vec2> target;
     cr.update(guide, map, traffic, n, pos.data(), goal.data(), at_goal.data(), ids.data(), step, target);
     return target;
+}
+std::vector<Vec2> crowd_targets(const std::vector<Vec2>& pos, const std::vector<Vec2>& goal, double weight, long step = 0,
+                                CrowdRoutes* routes = nullptr) {
+    TrafficConfig traffic;
+    traffic.crowd_weight = weight;
+    return crowd_targets(pos, goal, traffic, step, routes);
 }
 }  // namespace
 
@@ -175,12 +178,31 @@ TEST_CASE("crowds: with crowd_time, a robot goes around only the routes due wher
     auto last_target = [&](double from_y, double crowd_time) {
         std::vector<Vec2> p = pos, g = goal;
         p.push_back({0.0, from_y}), g.push_back({0.0, -4.0});
-        return crowd_targets(p, g, 0.5, 0, nullptr, crowd_time).back();
+        TrafficConfig traffic;
+        traffic.crowd_weight = 0.5, traffic.crowd_time = crowd_time;
+        return crowd_targets(p, g, traffic).back();
     };
     const Vec2 south{0.0, -4.0};
     CHECK(!(last_target(4.5, 0) == south));   // routes counted whenever: it goes around the lane
     CHECK(last_target(4.5, 10) == south);     // counted when they are due: the lane is clear by then
     CHECK(!(last_target(1.2, 10) == south));  // due together: it goes around
+}
+
+TEST_CASE("crowds: with crowd_detour, a detour longer than that times the straight way is not taken") {
+    // 24 robots fill a lane from x = -3 to 4 near y = 0; the last crosses it at x = 0, going
+    // south. The way around the lane's west end is about 11 against 8.5 straight across.
+    std::vector<Vec2> pos, goal;
+    for (int k = 0; k < 24; ++k) pos.push_back({-3.0, -0.25 + 0.02 * k}), goal.push_back({4.0, -0.25 + 0.02 * k});
+    pos.push_back({0.0, 4.5}), goal.push_back({0.0, -4.0});
+    TrafficConfig traffic;
+    traffic.crowd_weight = 0.5;
+    const Vec2 around = crowd_targets(pos, goal, traffic).back();
+    CHECK(!(around == goal.back()));
+    CHECK(around.x < -0.6);                                       // around the west end
+    traffic.crowd_detour = 1.6;
+    CHECK(crowd_targets(pos, goal, traffic).back().x < -0.6);     // within 1.6 times: taken
+    traffic.crowd_detour = 1.1;
+    CHECK(crowd_targets(pos, goal, traffic).back() == goal.back());  // longer than 1.1 times: straight across
 }
 
 TEST_CASE("crowds: routes around crowds leave a team that fits one scene as it was, and plan a larger one") {
