@@ -118,6 +118,9 @@
 //        expert_traffic(): passage_traffic()'s default, the planner's turns with spare 0.1.
 //        CrowdRoutes, traffic.crowd_weight (off by default) and crowd_cell: in a team larger than
 //        a scene, robots are routed around the crowds the others' routes make (issue 47).
+//        traffic.crowd_time and crowd_detour (options, off): routes around crowds count a robot in
+//        a cell only about when it is due there, and take no detour longer than crowd_detour times
+//        the straight way. DiffusionPlanner::last_crowd_targets().
 //        traffic.pocket_order (the expert's default; off for the planner): a robot whose goal
 //        would close off a pocket (a dead end) that another's route enters or leaves waits beside
 //        it until that robot is through. follow_order: a robot going on to a goal in a passage
@@ -5078,6 +5081,7 @@ public:
     // through a one-lane passage, at last_wait_points()[i]; kGoAround, goes around one; kGoOn.
     const std::vector<char>& last_waiting() const { return waiting_; }
     const std::vector<Vec2>& last_wait_points() const { return wait_point_; }
+    const std::vector<Vec2>& last_crowd_targets() const { return crowd_target_; }  // traffic.crowd_weight: where each robot headed (empty: none)
     void reseed(uint64_t seed) { rng_.reseed(seed); }
 
     // Robots per scene (at most) when planning a team of n in a world of half-size `half_size`,
