@@ -4800,7 +4800,7 @@ public:
     static constexpr int kCrowdReroute = 40;   // steps a route is kept before it is made again
     static constexpr int kCrowdAhead = 2;      // a robot heads this many route cells past its own
     static constexpr int kCrowdMinWay = 4;     // a robot fewer cells than this from its goal heads for it
-    static constexpr int kCrowdBins = 16;      // time bins of crowd_time steps each (beyond them: not counted)
+    static constexpr int kCrowdBins = 16;      // time bins of crowd_time steps each (later arrivals count in the last)
 
     // Where each of the n robots heads (target[i]: goal[i] where its route goes straight there).
     void update(RouteGuide& guide, const WorldMap& map, const TrafficConfig& p, int n, const Vec2* pos, const Vec2* goal,
@@ -4924,7 +4924,8 @@ private:
         const double chebyshev = std::max(std::fabs(goal.x - a.x), std::fabs(goal.y - a.y)) / g.cell;
         return steps < RouteGuide::kRouteUnreachable && steps <= kCrowdOpenRatio * chebyshev + 2 + guide.narrow_cost;  // a robot may stand in one narrow cell
     }
-    // The time bin a robot that has come `way` world units along its route is in (bins_: beyond).
+    // The time bin a robot that has come `way` world units along its route is in (bins_: beyond
+    // them; add() counts those in the last bin, the search reads nothing there).
     int bin_of(double way) const {
         if (bins_ == 1) return 0;
         return (int)std::min<double>(bins_, std::floor(way / ExpertParams{}.cell / bin_steps_));
