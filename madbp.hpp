@@ -4858,6 +4858,7 @@ private:
     std::vector<float> demand_;    // per time bin and coarse cell (bin * side^2 + cell): routes through it
     int bins_ = 1;                 // time bins: 1 (routes count whenever) or kCrowdBins
     double bin_steps_ = 0;         // steps a time bin spans (crowd_time; 0: one bin for all time)
+    double step_length_ = ExpertParams{}.cell;  // world units a robot covers a step at cruise
     std::map<int, Route> routes_;  // by robot id
     std::vector<int> index_;       // per robot of this call: its place on its route (-1: none)
     std::vector<int> present_;     // this call's ids, sorted
@@ -4928,7 +4929,7 @@ private:
     // them; add() counts those in the last bin, the search reads nothing there).
     int bin_of(double way) const {
         if (bins_ == 1) return 0;
-        return (int)std::min<double>(bins_, std::floor(way / ExpertParams{}.cell / bin_steps_));
+        return (int)std::min<double>(bins_, std::floor(way / step_length_ / bin_steps_));
     }
     // Adds `sign` to the demand of r's cells from index `from` on, for its robot at q: with time
     // bins, each cell in the bin of its arrival and the bins either side.
