@@ -4877,12 +4877,15 @@ private:
 
     void set_map(RouteGuide& guide, const WorldMap& map, const TrafficConfig& p) {
         const double h = map.half_size;
-        const double cell = std::max(p.crowd_cell, 2 * h / kCrowdMaxSide);
-        if (side_ > 0 && map == map_ && std::abs(cell - cell_) < 1e-12 && p.crowd_time == bin_steps_) return;
+        // The cells fit the world, so cell_ is crowd_cell rounded: compare the side, not the cell
+        // (comparing cell_ with crowd_cell remade every route every plan where 2h / crowd_cell
+        // is not a whole number).
+        const int side = std::max(1, (int)std::ceil(2 * h / std::max(p.crowd_cell, 2 * h / kCrowdMaxSide) - 1e-9));
+        if (side == side_ && map == map_ && p.crowd_time == bin_steps_) return;
         map_ = map;
         bin_steps_ = p.crowd_time;
         bins_ = bin_steps_ > 0 ? kCrowdBins : 1;
-        side_ = std::max(1, (int)std::ceil(2 * h / cell - 1e-9));
+        side_ = side;
         cell_ = 2 * h / side_;
         lo_ = -h;
         routes_.clear();

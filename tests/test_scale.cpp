@@ -121,14 +121,14 @@ TEST_CASE("scale: the planner's workspace is bounded by its chunks, linear in th
 }
 
 namespace {
-// CrowdRoutes' targets for robots 0..n-1 in an empty world of half-size 4.8.
+// CrowdRoutes' targets for robots 0..n-1 in an empty world (half-size 4.8: 16 coarse cells of 0.6).
 std::vector<Vec2> crowd_targets(const std::vector<Vec2>& pos, const std::vector<Vec2>& goal, const TrafficConfig& traffic,
-                                long step = 0, CrowdRoutes* routes = nullptr) {
+                                long step = 0, CrowdRoutes* routes = nullptr, double half_size = 4.8) {
     CrowdRoutes own;
     CrowdRoutes& cr = routes ? *routes : own;
     RouteGuide guide;
     WorldMap map;
-    map.half_size = 4.8;
+    map.half_size = half_size;
     const int n = (int)pos.size();
     std::vector<char> at_goal(n, 0);
     std::vector<int> ids(n);
@@ -167,6 +167,25 @@ TEST_CASE("crowds: a robot whose straight way runs through others' routes goes a
     const std::vector<Vec2> later = crowd_targets(moved, goal, 0.5, 8, &routes);
     CHECK(later.back().x > around.back().x);  // the next point along the same detour
     CHECK(std::fabs(later.back().y) > 0.25);
+}
+
+TEST_CASE("crowds: a route is kept between plans where the world is not a whole number of coarse cells") {
+    // Half-size 3.4: 12 cells of 0.567 for crowd_cell 0.6. The last robot is routed around the
+    // lane the others fill; two steps later they have all arrived, and its route, kept, still goes around.
+    std::vector<Vec2> pos, goal;
+    for (int k = 0; k < 24; ++k) pos.push_back({-3.0, -0.25 + 0.02 * k}), goal.push_back({3.0, -0.25 + 0.02 * k});
+    pos.push_back({-3.0, 0.0}), goal.push_back({3.0, 0.0});
+    TrafficConfig traffic;
+    traffic.crowd_weight = 0.5;
+    CrowdRoutes routes;
+    const Vec2 around = crowd_targets(pos, goal, traffic, 0, &routes, 3.4).back();
+    REQUIRE(!(around == goal.back()));
+    std::vector<Vec2> arrived = goal;
+    arrived.back() = pos.back();
+    CHECK(crowd_targets(arrived, goal, traffic, 2, &routes, 3.4).back() == around);        // kept: the same route point
+    CHECK(crowd_targets(arrived, goal, traffic, 2, nullptr, 3.4).back() == goal.back());   // made now: straight
+    // ... until kCrowdReroute steps pass: then it is made again, against the team as it stands.
+    CHECK(crowd_targets(arrived, goal, traffic, CrowdRoutes::kCrowdReroute, &routes, 3.4).back() == goal.back());
 }
 
 TEST_CASE("crowds: with crowd_time, a robot goes around only the routes due where it crosses when it is") {
