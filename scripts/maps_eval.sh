@@ -18,14 +18,10 @@
 # OUT (episode TSV), MAP_DIR (the .map files), SCEN_DIR (the .scen files; default MAP_DIR),
 # EVAL_FLAGS (more `madbp eval` flags, all methods), WORK_DIR (scenes and one row file per
 # episode, kept after the run; default a temporary folder, removed).
-# `scripts/maps_eval.sh --summary [FILE]` prints the summary of an existing TSV.
+# `scripts/maps_eval.sh --summary [FILE ...]` prints the summary of existing TSVs (below).
 set -euo pipefail
 
 MAP_DIR=${MAP_DIR:-maps/movingai}
-if [[ -z ${MAPS:-} ]]; then
-  MAPS=$(for f in "$MAP_DIR"/*.map; do [[ -f $f ]] && basename "$f" .map; done | sort | tr '\n' ' ')
-  [[ -n $MAPS ]] || { echo "maps_eval: no .map files in $MAP_DIR" >&2; exit 2; }
-fi
 CELLS=${CELLS:-"0.3 0.25"}
 AGENTS=${AGENTS:-"4 8 16 32"}
 SEEDS=${SEEDS:-"0 99"}
@@ -60,8 +56,25 @@ summary() {
     END { flush() }'
 }
 
-if [[ ${1:-} == --summary ]]; then summary "${2:-$OUT}"; exit 0; fi
+# `--summary F1 [F2 ...]`: the summary of the files' rows merged, a later file's row replacing an
+# earlier one of the same scene (map, cell, n, seed) and method, so a rerun with a newer planner
+# is laid over the older run.
+if [[ ${1:-} == --summary ]]; then
+  shift
+  (( $# > 0 )) || set -- "$OUT"
+  merged=$(mktemp "${TMPDIR:-/tmp}/maps_eval.XXXXXX")
+  trap 'rm -f "$merged"' EXIT
+  { echo "$HEADER"
+    awk -F '\t' 'FNR > 1 { key = $1 FS $2 FS $3 FS $4 FS $5; if (!(key in row)) order[++k] = key; row[key] = $0 }
+                 END { for (i = 1; i <= k; i++) print row[order[i]] }' "$@"; } > "$merged"
+  summary "$merged"
+  exit 0
+fi
 
+if [[ -z ${MAPS:-} ]]; then
+  MAPS=$(for f in "$MAP_DIR"/*.map; do [[ -f $f ]] && basename "$f" .map; done | sort | tr '\n' ' ')
+  [[ -n $MAPS ]] || { echo "maps_eval: no .map files in $MAP_DIR" >&2; exit 2; }
+fi
 [[ -x $MADBP ]] || { echo "maps_eval: $MADBP is not an executable (set MADBP=path/to/madbp)" >&2; exit 2; }
 read -r SEED_FIRST SEED_LAST <<< "$SEEDS"
 SEED_LAST=${SEED_LAST:-$SEED_FIRST}
