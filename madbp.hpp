@@ -2903,7 +2903,8 @@ struct DistanceField : NodeGrid {
 // around the obstacles (a "goal field": Dijkstra over goal_grid, every kGoalStride-th node of the
 // clearance field's each way, 8-connected, a step into a node closer than `radius` to the map
 // costing kBlockedFactor times its length), read the same way. Goal fields are made by add_goals
-// and kept for the map (at most kMaxGoalFields; then the cache starts again).
+// and kept for the map (at most kMaxGoalFields; a new goal takes the place of a field the plan
+// does not use).
 struct MapFields {
     static constexpr int kMaxGoalFields = 256;
     static constexpr double kBlockedFactor = 20;
@@ -2927,6 +2928,7 @@ struct MapFields {
         goal_grid.lo = clearance.lo;
         goal_grid.cell = clearance.cell * kGoalStride;
         goals.clear();
+        used_.clear();
         steps_radius_ = -1;  // the step lengths are the old map's
     }
     // The clearance at goal-grid node (row, col): the clearance field's node there (its last
@@ -2944,17 +2946,36 @@ struct MapFields {
         return nullptr;
     }
     // Makes the goal fields of every active agent of `batch` that has none yet (real goals only:
-    // a route subgoal is in straight view, SceneBatch::goal_final).
+    // a route subgoal is in straight view, SceneBatch::goal_final). With kMaxGoalFields kept, a new
+    // goal takes the place of a field this call's agents do not use; when all are in use, its agent
+    // keeps the straight-line goal term (window_cost). Clearing the cache when full, as before
+    // 2026-12-04, rebuilt every field every plan once more than kMaxGoalFields robots of a team saw
+    // their goals (512 robots among obstacles: 0.6-1.4 s a plan; docs/speed.md).
     void add_goals(const SceneBatch& batch, const ModelConfig& c, double radius) {
         MADBP_ASSERT(clearance.nodes >= 2);
+        ++call_;
+        used_.resize(goals.size(), 0);
+        auto wanted = [&](int a) { return batch.agent_mask[a] != 0 && batch.goal_final[a] != 0; };
+        for (int a = 0; a < batch.agents(); ++a)  // the fields this call uses stay
+            if (wanted(a))
+                if (const GoalField* g = find(batch.goal(a, c).x, batch.goal(a, c).y)) used_[(size_t)(g - goals.data())] = call_;
+        size_t spare = 0;  // the next field to look at for one this call does not use
         for (int a = 0; a < batch.agents(); ++a) {
-            if (batch.agent_mask[a] == 0 || batch.goal_final[a] == 0) continue;
+            if (!wanted(a)) continue;
             const Vec2 g = batch.goal(a, c);
-            const double gx = g.x, gy = g.y;
-            if (find(gx, gy)) continue;
-            if ((int)goals.size() >= kMaxGoalFields) goals.clear();
-            goals.push_back(GoalField{gx, gy, {}});
-            build_goal(goals.back(), radius);
+            if (find(g.x, g.y)) continue;
+            size_t slot = goals.size();
+            if (slot >= (size_t)kMaxGoalFields) {
+                while (spare < goals.size() && used_[spare] == call_) ++spare;
+                if (spare == goals.size()) continue;  // every field in use: the straight-line term
+                slot = spare;
+            } else {
+                goals.emplace_back();
+                used_.push_back(0);
+            }
+            goals[slot].x = g.x, goals[slot].y = g.y;
+            used_[slot] = call_;
+            build_goal(goals[slot], radius);
         }
     }
     // Distance to goal field g's goal at (x, y), and its gradient.
@@ -2963,6 +2984,8 @@ struct MapFields {
     }
 
 private:
+    std::vector<uint64_t> used_;  // (goals) the add_goals call that last used each field
+    uint64_t call_ = 0;
     // Dijkstra's queue as buckets of one cell's width (Dial's algorithm), reused: bucket
     // band % size holds the (distance, node) entries of distance band `band` = floor(d / cell).
     std::vector<std::vector<std::pair<float, int>>> buckets_;

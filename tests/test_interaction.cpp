@@ -335,6 +335,42 @@ TEST_CASE("goal fields: the distance to a goal around the map") {
     CHECK(f.goals.empty());  // another map forgets them
 }
 
+TEST_CASE("goal fields: a team with more goals than the cache holds keeps its fields between plans") {
+    // Before 2026-12-04 the cache was cleared when full, in the middle of add_goals: past
+    // kMaxGoalFields goals every plan rebuilt every field, and its first agents lost theirs.
+    const ModelConfig c = tiny_config();
+    const int cap = MapFields::kMaxGoalFields, n = cap + 40;
+    MapFields f;
+    f.set_map(WorldMap{});
+    Rng rng(3);
+    std::vector<Vec2> goal(n);
+    for (Vec2& g : goal) g = {rng.uniform(-1.1, 1.1), rng.uniform(-1.1, 1.1)};
+    auto batch_of = [&](int first, int count) {  // one scene per robot, as a plan's scenes
+        SceneBatch s;
+        s.resize(count, 1, c, true);
+        for (int a = 0; a < count; ++a) encode_agent(s, a, 0, {0, 0}, goal[first + a], WorldMap{}, c);
+        return s;
+    };
+    auto held = [&](const SceneBatch& s) {
+        int k = 0;
+        for (int a = 0; a < s.agents(); ++a) k += f.find(s.goal(a, c).x, s.goal(a, c).y) != nullptr;
+        return k;
+    };
+    const SceneBatch all = batch_of(0, n);
+    f.add_goals(all, c, 0.1);
+    REQUIRE(f.goals.size() == (size_t)cap);
+    CHECK(held(batch_of(0, cap)) == cap);  // the first agents keep theirs; the last 40 use the straight-line term
+    std::vector<Vec2> kept;
+    for (const MapFields::GoalField& g : f.goals) kept.push_back({g.x, g.y});
+    f.add_goals(all, c, 0.1);  // the next plan of the same team: nothing made again
+    for (size_t i = 0; i < f.goals.size(); ++i) CHECK((f.goals[i].x == kept[i].x && f.goals[i].y == kept[i].y));
+    // A plan without the first 40 robots: their fields make way for the last 40's.
+    const SceneBatch later = batch_of(40, cap);
+    f.add_goals(later, c, 0.1);
+    CHECK(f.goals.size() == (size_t)cap);
+    CHECK(held(later) == cap);
+}
+
 TEST_CASE("goal fields: the bucket queue gives a binary heap's Dijkstra to the bit") {
     // The reference: textbook Dijkstra with a binary heap over the same graph (8-connected nodes,
     // a step into a node nearer than `radius` to the map costing kBlockedFactor times its length).
