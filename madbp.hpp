@@ -2956,9 +2956,11 @@ struct MapFields {
         ++call_;
         used_.resize(goals.size(), 0);
         auto wanted = [&](int a) { return batch.agent_mask[a] != 0 && batch.goal_final[a] != 0; };
-        for (int a = 0; a < batch.agents(); ++a)  // the fields this call uses stay
-            if (wanted(a))
-                if (const GoalField* g = find(batch.goal(a, c).x, batch.goal(a, c).y)) used_[(size_t)(g - goals.data())] = call_;
+        for (int a = 0; a < batch.agents(); ++a) {  // the fields this call uses stay
+            if (!wanted(a)) continue;
+            const Vec2 g = batch.goal(a, c);
+            if (const GoalField* field = find(g.x, g.y)) used_[(size_t)(field - goals.data())] = call_;
+        }
         size_t spare = 0;  // the next field to look at for one this call does not use
         for (int a = 0; a < batch.agents(); ++a) {
             if (!wanted(a)) continue;
