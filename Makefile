@@ -88,7 +88,7 @@ bench: all
 	$(BUILD)/madbp bench --nn
 	$(BUILD)/madbp bench --plan
 	$(BUILD)/madbp bench --plan --agents 64,256,1024 --plans 3 --no-expert
-	$(BUILD)/madbp bench --plan --map obstacles --agents 64,256,1024 --plans 3 --no-expert
+	$(BUILD)/madbp bench --plan --map obstacles --agents 64,256,1024 --plans 3 --no-expert --episode-steps 100
 	$(BUILD)/bench_alloc
 
 # The shipped default model, reproducibly: expert demonstrations (3 maps, 1-4 robots, 500

@@ -116,8 +116,9 @@
 //        PassageControl::follow_order: the robots going one way through a passage, in a line
 //        from the front; passage_traffic() has the expert plan each after the one ahead of it.
 //        expert_traffic(): passage_traffic()'s default, the planner's turns with spare 0.1.
-//        CrowdRoutes, traffic.crowd_weight (off by default) and crowd_cell: in a team larger than
-//        a scene, robots are routed around the crowds the others' routes make (issue 47).
+//        CrowdRoutes, traffic.crowd_weight, crowd_density and crowd_cell: in a team larger than a
+//        scene and as dense as issue 47's crowds, robots are routed around the crowds the others'
+//        routes make (issue 47; on by default since 2026-12-04).
 //        traffic.crowd_time and crowd_detour (options, off): routes around crowds count a robot in
 //        a cell only about when it is due there, and take no detour longer than crowd_detour times
 //        the straight way. DiffusionPlanner::last_crowd_targets().
@@ -3499,12 +3500,16 @@ struct TrafficConfig {
     bool go_around = true;         // robots that would wait go around it (false: it is no passage)
     double spread = 0.3;           // and take its two sides in turn: each the side whose way, plus this per
                                    // robot already going that side, is shortest (0: all the shortest way)
-    // Routes around crowds (CrowdRoutes), in a team larger than a scene in a world larger than the
-    // training world: a coarse cell's step costs 1 + crowd_weight x the robots routed through it
-    // per its free area (0, the default: every robot heads straight along its map route). 0.04
-    // lifts obstacles 128 from .88 to .94 but costs at 64 and 256 robots, so it is an option
-    // (docs/experiments.md, "Routes around crowds").
-    double crowd_weight = 0;
+    // Routes around crowds (CrowdRoutes), in a team larger than a scene, at least crowd_density
+    // robots per square world unit, in a world larger than the training world: a coarse cell's
+    // step costs 1 + crowd_weight x the robots routed through it per its free area (0: every robot
+    // heads straight along its map route). Among obstacles at issue 47's density (1.4 a square
+    // unit) 0.04 lifts 32 / 64 / 128 / 256 robots from .98 / .94 / .88 / .87 to 1.00 / .98 / .94 /
+    // .93 (docs/evaluation.md, "Routes around crowds"). Sparser teams (MovingAI maps with 32
+    // robots: 0.1-0.5 a square unit) keep their map routes: there are no crowds to go around, and
+    // the routes' small detours would change their plans for nothing.
+    double crowd_weight = 0.04;
+    double crowd_density = 1.0;    // robots per square world unit (the world's (2 half_size)^2) from which they act
     double crowd_cell = 0.6;       // the coarse cells' side, world units
     double crowd_detour = 0;       // > 0: a route around crowds longer than this times the straight way is not taken
     double crowd_time = 0;         // > 0: a route counts in a cell only within about this many steps of
@@ -3580,6 +3585,7 @@ struct PlannerConfig {
         p.guidance.priority = 1;
         p.traffic.take_turns = false;
         p.traffic.passage_replan = 0;
+        p.traffic.crowd_weight = 0;
         p.follower.priority_weight = 1;
         p.follower.lookahead = 0;
         p.follower.replan_error = 0;
@@ -3733,6 +3739,8 @@ inline const std::vector<PlannerSetting>& planner_settings() {
          +[](C& c) -> double& { return c.traffic.spread; }},
         {"traffic.crowd_weight", 0, 100, "in a team larger than a scene in a world larger than training, robots route around crowds: a cell costs 1 + this per robot routed through it (0 = off)", nullptr, 0,
          +[](C& c) -> double& { return c.traffic.crowd_weight; }},
+        {"traffic.crowd_density", 0, 1000, "routes around crowds act only in a team of at least this many robots per square world unit", nullptr, 0,
+         +[](C& c) -> double& { return c.traffic.crowd_density; }},
         {"traffic.crowd_cell", 0.2, 100, "cell side of the grid routes around crowds are made on (world units)", nullptr, 0,
          +[](C& c) -> double& { return c.traffic.crowd_cell; }},
         {"traffic.crowd_detour", 0, 100, "routes around crowds: a detour longer than this times the straight way is not taken (0 = any)", nullptr, 0,
@@ -5166,9 +5174,11 @@ public:
             pos_[i] = a.pos, goal_[i] = a.goal, ids_[i] = a.id, at_goal_[i] = world.at_goal(a);
         }
         now_ = world.t();
-        // Routes around crowds where the team is larger than a scene and the world than the
-        // training world's (where ways are long enough to meet in crowds).
-        if (settings.traffic.crowd_weight > 0 && K < n && world.map().half_size > model_.config.position_scale * (1 + 1e-9))
+        // Routes around crowds where the team is larger than a scene, dense enough to crowd, and
+        // the world larger than the training world's (where ways are long enough to meet in crowds).
+        const double side = 2 * world.map().half_size;
+        if (settings.traffic.crowd_weight > 0 && K < n && n >= settings.traffic.crowd_density * side * side &&
+            world.map().half_size > model_.config.position_scale * (1 + 1e-9))
             crowds_.update(guide_, world.map(), settings.traffic, n, pos_.data(), goal_.data(), at_goal_.data(), ids_.data(), now_, crowd_target_);
         else
             crowd_target_.clear();

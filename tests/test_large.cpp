@@ -269,6 +269,7 @@ TEST_CASE("large: neighbourhood planning in the Local frame allocates nothing on
         CAPTURE(crowd_weight);
         DiffusionPlanner planner(MadbpModel(local_config(), 2), 3);  // route subgoals and guidance on
         planner.settings.traffic.crowd_weight = crowd_weight;
+        planner.settings.traffic.crowd_density = 0;  // 7 robots in half-size 2.4 are sparser than a crowd
         World w = make_random_world("obstacles", 7, 1, 2.4);
         Plan plan;
         for (int i = 0; i < 2; ++i) planner.plan_into(w, plan);

@@ -5,8 +5,16 @@
 
 #include <chrono>
 
+#include <fcntl.h>
+#include <unistd.h>
+
+#include <fstream>
+#include <sstream>
+
 #include "cli_common.hpp"
 #include "madbp_sim.hpp"
+#include "methods.hpp"     // read_planner_choice, for bench_plan
+#include "bench_plan.hpp"
 
 using namespace madbp;
 using madbp_cli::Args;
@@ -101,4 +109,38 @@ TEST_CASE("tools: evaluate reports the steps of a running episode as progress no
     const std::vector<std::string> expected = {"0/2 step 0/5", "0/2 step 1/5", "0/2 step 2/5", "0/2 step 3/5", "0/2 step 4/5", "1/2 ",
                                                "1/2 step 0/5", "1/2 step 1/5", "1/2 step 2/5", "1/2 step 3/5", "1/2 step 4/5", "2/2 "};
     CHECK(calls == expected);
+}
+
+TEST_CASE("tools: bench --plan --episode-steps times the plans of an episode as eval makes them") {
+    // Nine robots among obstacles (a scene batch: routes, goal fields, replans), 12 steps: the
+    // follower plans at step 0 and at least every follower.replan_every (4) steps after.
+    Args a(std::vector<std::string>{"--plan", "--agents", "9", "--plans", "1", "--no-expert", "--threads", "1", "--map", "obstacles",
+                                    "--episode-steps", "12", "--json"});
+    a.flag("--plan");
+    const std::string path = "build/test-bench-episode.jsonl";
+    std::fflush(stdout);
+    const int saved = dup(1), fd = open(path.c_str(), O_WRONLY | O_CREAT | O_TRUNC, 0644);
+    REQUIRE(saved >= 0);
+    REQUIRE(fd >= 0);
+    dup2(fd, 1);
+    close(fd);
+    int rc = -1;
+    try { rc = madbp_cli::bench_plan(a); } catch (...) {}
+    std::fflush(stdout);
+    dup2(saved, 1);
+    close(saved);
+    CHECK(rc == 0);
+    std::ifstream in(path);
+    std::stringstream text;
+    text << in.rdbuf();
+    const std::string out = text.str();
+    auto field = [&](const std::string& name) {
+        const size_t at = out.find("\"" + name + "\": ");
+        REQUIRE_MESSAGE(at != std::string::npos, name << " missing in: " << out);
+        return std::stod(out.substr(at + name.size() + 4));
+    };
+    CHECK(field("episode_steps") == 12);
+    CHECK(field("episode_plans") >= 3);
+    CHECK(field("episode_plans") <= 12);
+    CHECK(field("episode_ms_per_plan") > 0);
 }

@@ -71,6 +71,11 @@ inline int bench_plan(Args& a) {
     // The worlds' map: empty (the default), or obstacles, where robots route around the map
     // (RouteGuide's fields are made in the first plans, then cached).
     const std::string map = a.str("--map", "empty");
+    // Plans inside an episode: the team runs this many steps as eval runs it (make_follower), and
+    // those plans are timed. They cost what the first plans above do not: goal fields made as
+    // robots come near new routes, plans every m/2 steps when a robot strays
+    // (follower.replan_error), routes around crowds made again (0: not run).
+    const int episode_steps = (int)a.integer("--episode-steps", 0, 0, 100000);
     a.finish();
     for (long n : teams) check_random_world(map, n, seed, half_sizes.of(n));  // before the long run
     if (choice.decentralised) throw std::invalid_argument("--decentralised: bench --plan times a team's plans (plan_robot: --agents 1)");
@@ -91,15 +96,16 @@ inline int bench_plan(Args& a) {
                     "new_ms: a first plan of a new world on the same map (new goals: their goal fields are made);\n"
                     "expert: the guided expert's ms per plan; GFLOP/s: of a first plan;\n"
                     "ms/robot: ms/plan per robot; growth: ms/plan grows as n^growth from the row above (1 = linear in robots);\n"
-                    "ms_%dt: a first plan on %d threads, x%dt: its speed-up, measured in the same run\n"
-                    "%4s %6s %10s %10s %10s %10s %10s %8s %9s %6s %9s %6s\n",
+                    "ms_%dt: a first plan on %d threads, x%dt: its speed-up, measured in the same run;\n"
+                    "episode_ms: the mean plan in the first %d steps of an episode from the same world, as eval plans (--episode-steps)\n"
+                    "%4s %6s %10s %10s %10s %10s %10s %8s %9s %6s %9s %6s %10s\n",
                     model_path.c_str(), S, sc.guidance, sc.keep_right, sc.candidates,
                     madbp::kSmallPlanWindows, choice.settings.sampler.small_plan_candidates, sc.warm_start, choice.settings.sampler.line_start ? 1 : 0, config.channels[0], config.dim * config.kernel, config.dim * config.kernel, config.horizon * 8, gemm,
                     map.c_str(), half_sizes.given > 0 ? ("half-size " + madbp::number_text(half_sizes.given)).c_str()
                                          : "half-size at constant density (1.2 up to 8 robots, 3.4 at 64, 13.6 at 1024)",
-                    threads, threads, threads, "n",
+                    threads, threads, threads, episode_steps, "n",
                     "scenes", "ms/plan", "warm_ms", "new_ms", "expert_ms", "GFLOP/s", "of GEMM", "ms/robot", "growth",
-                    ("ms_" + std::to_string(threads) + "t").c_str(), ("x" + std::to_string(threads) + "t").c_str());
+                    ("ms_" + std::to_string(threads) + "t").c_str(), ("x" + std::to_string(threads) + "t").c_str(), "episode_ms");
     double robot_ms = 0, robot_warm_ms = 0;
     double last_ms = 0;  // the row above: the growth exponent
     long last_n = 0;
@@ -116,7 +122,7 @@ inline int bench_plan(Args& a) {
         // expert's run is the last unit.
         madbp::ProgressFn progress = progress_line("bench --plan n=" + std::to_string(n) + " plans");
         long done = 0;
-        auto tick = [&](const char* note) { if (progress) progress(++done, 3 + 3L * plans + 1, note); };
+        auto tick = [&](const char* note) { if (progress) progress(++done, 3 + 3L * plans + 1 + episode_steps, note); };
         for (int i = 0; i < 3; ++i) planner.plan_into(world, plan), tick("warm-up");  // warm-up: workspaces take their sizes
         auto t0 = std::chrono::steady_clock::now();
         for (int i = 0; i < plans; ++i) planner.plan_into(world, plan), tick("first plans");
@@ -159,6 +165,18 @@ inline int bench_plan(Args& a) {
         const int expert_plans = std::max(3, plans / 5);
         for (int i = 0; expert_row && i < expert_plans * madbp::ExpertParams{}.replan_every && !ew.done(); ++i) ew.step(expert.act(ew));
         const double expert_ms = expert_row ? expert.decision_ms() : NAN;
+        double episode_ms = NAN;
+        int episode_plans = 0;
+        if (episode_steps > 0) {  // a fresh planner, as an episode of eval starts with
+            madbp::DiffusionPlanner episode_planner(loaded.clone(), seed, choice.settings);
+            madbp::PlanFollower follower = madbp::make_follower(episode_planner);
+            madbp::World w = world;
+            for (int t = 0; t < episode_steps; ++t) {
+                if (!w.done()) w.step(follower.act(w));
+                tick("episode steps");
+            }
+            episode_ms = follower.decision_ms(), episode_plans = follower.plans();
+        }
         tick("");
         progress = nullptr;  // the line ends before the row
         if (scenes > 1) {  // one robot's own scene (plan_robot) among the others of the team (the largest team's is printed)
@@ -186,11 +204,12 @@ inline int bench_plan(Args& a) {
         if (json)
             std::printf("%s\n", Json().add("bench", "plan").add("map", map).add("agents", n).add("half_size", half_size).add("scenes", scenes).add("per_scene", per_scene).add("sample_steps", S)
                                     .add("guidance", sc.guidance).add("keep_right", sc.keep_right).add("candidates", drawn).add("warm_start", sc.warm_start).add("line_start", choice.settings.sampler.line_start ? 1 : 0).add("ms_per_plan", ms).add("warm_ms_per_plan", warm_ms).add("new_world_ms_per_plan", new_ms).add("expert_ms_per_plan", expert_ms).add("ms_per_robot", ms / n).add("growth", growth).add("threads", threads).add("threads_ms_per_plan", 1000 * threads_secs / plans).add("threads_speedup", secs / threads_secs)
+                                    .add("episode_steps", episode_steps).add("episode_plans", episode_plans).add("episode_ms_per_plan", episode_ms)
                                     .add("gflops", rate).add("gemm_gflops", gemm).add("share_of_gemm", rate / gemm).line().c_str());
         else {
             const std::string shape = std::to_string(scenes) + "x" + std::to_string(per_scene) + (drawn > 1 ? "x" + std::to_string(drawn) : "");
-            std::printf("%4ld %6s %10.3f %10.3f %10.3f %10.3f %10.1f %7.0f%% %9.3f %6.2f %9.3f %6.2f\n", n, shape.c_str(), ms, warm_ms, new_ms, expert_ms, rate, 100 * rate / gemm,
-                        ms / n, growth, 1000 * threads_secs / plans, secs / threads_secs);
+            std::printf("%4ld %6s %10.3f %10.3f %10.3f %10.3f %10.1f %7.0f%% %9.3f %6.2f %9.3f %6.2f %10.3f\n", n, shape.c_str(), ms, warm_ms, new_ms, expert_ms, rate, 100 * rate / gemm,
+                        ms / n, growth, 1000 * threads_secs / plans, secs / threads_secs, episode_ms);
         }
         std::fflush(stdout);
         last_ms = ms, last_n = n;

@@ -299,7 +299,9 @@ int cmd_bench(Args& a) {
             "                 ms/plan is a first plan, warm_ms one replan interval later; --threads T (default\n"
             "                 2): the first plans again on T threads, side by side; --no-expert: skip\n"
             "                 the guided expert's column (seconds per plan beyond 128 robots);\n"
-            "                 --map empty|obstacles|barrier: the worlds' map (default empty)\n"
+            "                 --map empty|obstacles|barrier: the worlds' map (default empty);\n"
+            "                 --episode-steps K: also the mean plan in an episode's first K steps, as\n"
+            "                 eval plans them (goal fields, early replans; default 0: not run)\n"
             "  --json         one JSON object per thread count\n");
         return 0;
     }
