@@ -117,8 +117,8 @@
 //        from the front; passage_traffic() has the expert plan each after the one ahead of it.
 //        expert_traffic(): passage_traffic()'s default, the planner's turns with spare 0.1.
 //        CrowdRoutes, traffic.crowd_weight, crowd_density and crowd_cell: in a team larger than a
-//        scene and as dense as issue 47's crowds, robots are routed around the crowds the others'
-//        routes make (issue 47; on by default since 2026-12-04).
+//        scene with at least crowd_density (1) robots a square unit, robots are routed around the
+//        crowds the others' routes make (issue 47; on by default since 2026-12-04).
 //        traffic.crowd_time and crowd_detour (options, off): routes around crowds count a robot in
 //        a cell only about when it is due there, and take no detour longer than crowd_detour times
 //        the straight way. DiffusionPlanner::last_crowd_targets().
@@ -3506,7 +3506,7 @@ struct TrafficConfig {
     // heads straight along its map route). Among obstacles at issue 47's density (1.4 a square
     // unit) 0.04 lifts 32 / 64 / 128 / 256 robots from .98 / .94 / .88 / .87 to 1.00 / .98 / .94 /
     // .93 (docs/evaluation.md, "Routes around crowds"). Sparser teams (MovingAI maps with 32
-    // robots: 0.1-0.5 a square unit) keep their map routes: there are no crowds to go around, and
+    // robots: 0.09-0.5 a square unit) keep their map routes: there are no crowds to go around, and
     // the routes' small detours would change their plans for nothing.
     double crowd_weight = 0.04;
     double crowd_density = 1.0;    // robots per square world unit (the world's (2 half_size)^2) from which they act
@@ -3737,7 +3737,7 @@ inline const std::vector<PlannerSetting>& planner_settings() {
          +[](C& c) -> bool& { return c.traffic.go_around; }},
         {"traffic.spread", 0, 100, "robots going around take its sides in turn: this much per robot already on a side", nullptr, 0,
          +[](C& c) -> double& { return c.traffic.spread; }},
-        {"traffic.crowd_weight", 0, 100, "in a team larger than a scene in a world larger than training, robots route around crowds: a cell costs 1 + this per robot routed through it (0 = off)", nullptr, 0,
+        {"traffic.crowd_weight", 0, 100, "in a team larger than a scene, at least traffic.crowd_density robots a square unit, in a world larger than training, robots route around crowds: a cell costs 1 + this per robot routed through it (0 = off)", nullptr, 0,
          +[](C& c) -> double& { return c.traffic.crowd_weight; }},
         {"traffic.crowd_density", 0, 1000, "routes around crowds act only in a team of at least this many robots per square world unit", nullptr, 0,
          +[](C& c) -> double& { return c.traffic.crowd_density; }},

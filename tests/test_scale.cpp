@@ -228,7 +228,7 @@ TEST_CASE("crowds: routes around crowds leave a team that fits one scene as it w
     auto plan_with = [](double weight, int n) {
         DiffusionPlanner planner(MadbpModel(tiny_config(), 3), 17);  // K = n_max = 6
         planner.settings.traffic.crowd_weight = weight;
-        planner.settings.traffic.crowd_density = 0;  // this sparser world too
+        planner.settings.traffic.crowd_density = 0;  // 24 robots here are 0.6 a square unit: below the default gate
         World w = make_random_world("obstacles", n, 5, default_half_size(n) + 1.0);
         Plan first = planner.plan(w);
         for (int k = 0; k < 4; ++k) w.step(std::vector<Vec2>(w.size(), Vec2{0.2, 0.1}));
@@ -243,7 +243,7 @@ TEST_CASE("crowds: routes around crowds leave a team that fits one scene as it w
 
 TEST_CASE("crowds: routes around crowds act in a team as dense as a crowd, not in a sparser one (traffic.crowd_density)") {
     // The defaults: on from 1 robot per square world unit. 24 robots at constant density
-    // (half-size 2.08, 1.4 a square unit) are routed; the same team in half-size 3.5 (0.5) is not,
+    // (half-size 2.1, 1.36 a square unit) are routed; the same team in half-size 3.5 (0.5) is not,
     // and plans exactly as with the routes off.
     auto plan_in = [](double half_size, double weight) {
         DiffusionPlanner planner(MadbpModel(tiny_config(), 3), 17);  // K = n_max = 6

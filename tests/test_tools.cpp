@@ -117,22 +117,29 @@ TEST_CASE("tools: bench --plan --episode-steps times the plans of an episode as 
     Args a(std::vector<std::string>{"--plan", "--agents", "9", "--plans", "1", "--no-expert", "--threads", "1", "--map", "obstacles",
                                     "--episode-steps", "12", "--json"});
     a.flag("--plan");
-    const std::string path = "build/test-bench-episode.jsonl";
-    std::fflush(stdout);
-    const int saved = dup(1), fd = open(path.c_str(), O_WRONLY | O_CREAT | O_TRUNC, 0644);
-    REQUIRE(saved >= 0);
+    char path[] = "/tmp/madbp-bench-episode-XXXXXX";
+    const int fd = mkstemp(path);
     REQUIRE(fd >= 0);
-    dup2(fd, 1);
+    std::fflush(stdout);
+    const int saved = dup(1);
+    const bool redirected = saved >= 0 && dup2(fd, 1) >= 0;
     close(fd);
     int rc = -1;
-    try { rc = madbp_cli::bench_plan(a); } catch (...) {}
-    std::fflush(stdout);
-    dup2(saved, 1);
-    close(saved);
+    std::string error;
+    if (redirected) {
+        try { rc = madbp_cli::bench_plan(a); } catch (const std::exception& e) { error = e.what(); }
+        std::fflush(stdout);
+        dup2(saved, 1);  // stdout back before any check reports
+    }
+    if (saved >= 0) close(saved);
+    set_num_threads(1);
+    REQUIRE(redirected);
+    CHECK_MESSAGE(error.empty(), error);
     CHECK(rc == 0);
     std::ifstream in(path);
     std::stringstream text;
     text << in.rdbuf();
+    std::remove(path);
     const std::string out = text.str();
     auto field = [&](const std::string& name) {
         const size_t at = out.find("\"" + name + "\": ");
@@ -140,6 +147,7 @@ TEST_CASE("tools: bench --plan --episode-steps times the plans of an episode as 
         return std::stod(out.substr(at + name.size() + 4));
     };
     CHECK(field("episode_steps") == 12);
+    CHECK(field("episode_steps_run") == 12);  // no team of 9 finishes in 12 steps
     CHECK(field("episode_plans") >= 3);
     CHECK(field("episode_plans") <= 12);
     CHECK(field("episode_ms_per_plan") > 0);

@@ -5,6 +5,7 @@
 // which replaces malloc: the shipped tool does not.
 #pragma once
 #include <chrono>
+#include <optional>
 
 #include "madbp.hpp"
 
@@ -97,13 +98,16 @@ inline int bench_plan(Args& a) {
                     "expert: the guided expert's ms per plan; GFLOP/s: of a first plan;\n"
                     "ms/robot: ms/plan per robot; growth: ms/plan grows as n^growth from the row above (1 = linear in robots);\n"
                     "ms_%dt: a first plan on %d threads, x%dt: its speed-up, measured in the same run;\n"
-                    "episode_ms: the mean plan in the first %d steps of an episode from the same world, as eval plans (--episode-steps)\n"
+                    "%s"
                     "%4s %6s %10s %10s %10s %10s %10s %8s %9s %6s %9s %6s %10s\n",
                     model_path.c_str(), S, sc.guidance, sc.keep_right, sc.candidates,
                     madbp::kSmallPlanWindows, choice.settings.sampler.small_plan_candidates, sc.warm_start, choice.settings.sampler.line_start ? 1 : 0, config.channels[0], config.dim * config.kernel, config.dim * config.kernel, config.horizon * 8, gemm,
                     map.c_str(), half_sizes.given > 0 ? ("half-size " + madbp::number_text(half_sizes.given)).c_str()
                                          : "half-size at constant density (1.2 up to 8 robots, 3.4 at 64, 13.6 at 1024)",
-                    threads, threads, threads, episode_steps, "n",
+                    threads, threads, threads,
+                    episode_steps > 0 ? ("episode_ms: the mean plan in the first " + std::to_string(episode_steps) +
+                                         " steps of an episode from the same world, as eval plans them (--episode-steps)\n").c_str() : "",
+                    "n",
                     "scenes", "ms/plan", "warm_ms", "new_ms", "expert_ms", "GFLOP/s", "of GEMM", "ms/robot", "growth",
                     ("ms_" + std::to_string(threads) + "t").c_str(), ("x" + std::to_string(threads) + "t").c_str(), "episode_ms");
     double robot_ms = 0, robot_warm_ms = 0;
@@ -112,14 +116,17 @@ inline int bench_plan(Args& a) {
     int robot_K = 0;
     long robot_n = 0;  // the team plan_robot was timed in: the largest planned in neighbourhoods
     for (long n : teams) {
-        madbp::DiffusionPlanner planner(loaded.clone(), seed, choice.settings);
+        // Held in an optional: it is let go before the episode's planner is made (two at 1024 robots
+        // would double the peak resident memory).
+        std::optional<madbp::DiffusionPlanner> first_planner(std::in_place, loaded.clone(), seed, choice.settings);
+        madbp::DiffusionPlanner& planner = *first_planner;
         // DDIM steps of a first plan: with line start and warm start on, the last W, else all S.
         const int first_steps = choice.settings.sampler.line_start && sc.warm_starts() ? sc.warm_start : S;
         const double half_size = half_sizes.of(n);
         madbp::World world = madbp::make_random_world(map, (int)n, seed, half_size);
         madbp::Plan plan;
         // Plans done on a terminal's progress line: at 1024 robots a plan takes seconds. The
-        // expert's run is the last unit.
+        // expert's run is a unit, then each episode step.
         madbp::ProgressFn progress = progress_line("bench --plan n=" + std::to_string(n) + " plans");
         long done = 0;
         auto tick = [&](const char* note) { if (progress) progress(++done, 3 + 3L * plans + 1 + episode_steps, note); };
@@ -165,20 +172,7 @@ inline int bench_plan(Args& a) {
         const int expert_plans = std::max(3, plans / 5);
         for (int i = 0; expert_row && i < expert_plans * madbp::ExpertParams{}.replan_every && !ew.done(); ++i) ew.step(expert.act(ew));
         const double expert_ms = expert_row ? expert.decision_ms() : NAN;
-        double episode_ms = NAN;
-        int episode_plans = 0;
-        if (episode_steps > 0) {  // a fresh planner, as an episode of eval starts with
-            madbp::DiffusionPlanner episode_planner(loaded.clone(), seed, choice.settings);
-            madbp::PlanFollower follower = madbp::make_follower(episode_planner);
-            madbp::World w = world;
-            for (int t = 0; t < episode_steps; ++t) {
-                if (!w.done()) w.step(follower.act(w));
-                tick("episode steps");
-            }
-            episode_ms = follower.decision_ms(), episode_plans = follower.plans();
-        }
         tick("");
-        progress = nullptr;  // the line ends before the row
         if (scenes > 1) {  // one robot's own scene (plan_robot) among the others of the team (the largest team's is printed)
             std::vector<madbp::DiffusionPlanner::Neighbour> others;
             for (int j = 1; j < world.size(); ++j) others.push_back({world.agents()[j].pos, world.agents()[j].goal, world.agents()[j].id});
@@ -201,10 +195,28 @@ inline int bench_plan(Args& a) {
             robot_K = per_scene;
             robot_n = n;
         }
+        // The episode: a fresh planner, as eval's episodes start with, on the same world with eval's
+        // step limit (or K steps if more); a team that finishes early runs fewer steps (episode_steps_run).
+        double episode_ms = NAN;
+        int episode_plans = 0, episode_steps_run = 0;
+        if (episode_steps > 0) {
+            first_planner.reset();
+            madbp::DiffusionPlanner episode_planner(loaded.clone(), seed, choice.settings);
+            madbp::PlanFollower follower = madbp::make_follower(episode_planner);
+            madbp::WorldConfig limit;
+            limit.max_steps = std::max(episode_steps, madbp::default_max_steps(half_size));
+            madbp::World w = madbp::make_random_world(map, (int)n, seed, half_size, limit);
+            for (int t = 0; t < episode_steps; ++t) {
+                if (!w.done()) w.step(follower.act(w)), ++episode_steps_run;
+                tick("episode steps");
+            }
+            episode_ms = follower.decision_ms(), episode_plans = follower.plans();
+        }
+        progress = nullptr;  // the line ends before the row
         if (json)
             std::printf("%s\n", Json().add("bench", "plan").add("map", map).add("agents", n).add("half_size", half_size).add("scenes", scenes).add("per_scene", per_scene).add("sample_steps", S)
                                     .add("guidance", sc.guidance).add("keep_right", sc.keep_right).add("candidates", drawn).add("warm_start", sc.warm_start).add("line_start", choice.settings.sampler.line_start ? 1 : 0).add("ms_per_plan", ms).add("warm_ms_per_plan", warm_ms).add("new_world_ms_per_plan", new_ms).add("expert_ms_per_plan", expert_ms).add("ms_per_robot", ms / n).add("growth", growth).add("threads", threads).add("threads_ms_per_plan", 1000 * threads_secs / plans).add("threads_speedup", secs / threads_secs)
-                                    .add("episode_steps", episode_steps).add("episode_plans", episode_plans).add("episode_ms_per_plan", episode_ms)
+                                    .add("episode_steps", episode_steps).add("episode_steps_run", episode_steps_run).add("episode_plans", episode_plans).add("episode_ms_per_plan", episode_ms)
                                     .add("gflops", rate).add("gemm_gflops", gemm).add("share_of_gemm", rate / gemm).line().c_str());
         else {
             const std::string shape = std::to_string(scenes) + "x" + std::to_string(per_scene) + (drawn > 1 ? "x" + std::to_string(drawn) : "");
