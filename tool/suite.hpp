@@ -667,7 +667,7 @@ inline void add_fig3a_cells(std::vector<SuiteCell>& cells, const SuiteConfig& cf
             m.out = fig3a_mappo_path(cfg, k);
             const auto t0 = std::chrono::steady_clock::now();
             madbp::MappoReport rep = madbp::train_mappo(m);
-            r.set("seconds", seconds_since(t0)).set("iterations", rep.iterations).set("env_steps", rep.env_steps)
+            r.set("threads", (long)cfg.threads).set("seconds", seconds_since(t0)).set("iterations", rep.iterations).set("env_steps", rep.env_steps)
                 .set("train_success", rep.curve.rows.empty() ? NAN : rep.curve.rows.back()[rep.curve.column("success")]).set("file", m.out);
             return std::vector<SuiteRecord>{};
         };
@@ -689,7 +689,7 @@ inline void add_fig3a_cells(std::vector<SuiteCell>& cells, const SuiteConfig& cf
             madbp::DemoSet set = madbp::collect_demonstrations(cc, madbp::mappo_demonstrator(pattern), "mappo:" + pattern);
             const double secs = seconds_since(t0);
             madbp::save_demos(fig3a_demos_path(cfg, n), set);
-            r.set("seconds", secs).set("kept", (long)set.episodes.size()).set("asked", (long)cc.episodes * cc.n_train_max)
+            r.set("threads", (long)cfg.threads).set("seconds", secs).set("kept", (long)set.episodes.size()).set("asked", (long)cc.episodes * cc.n_train_max)
                 .set("file", fig3a_demos_path(cfg, n));
             return std::vector<SuiteRecord>{};
         };
@@ -712,7 +712,7 @@ inline void add_fig3a_cells(std::vector<SuiteCell>& cells, const SuiteConfig& cf
             madbp::MadbpModel model(cfg.fig3a_model, tc.seed);
             const auto t0 = std::chrono::steady_clock::now();
             madbp::TrainReport rep = madbp::train(demos, model, tc);
-            r.set("seconds", seconds_since(t0)).set("steps", rep.steps).set("val_loss", rep.last_val.total).set("file", tc.out);
+            r.set("threads", (long)cfg.threads).set("seconds", seconds_since(t0)).set("steps", rep.steps).set("val_loss", rep.last_val.total).set("file", tc.out);
             return std::vector<SuiteRecord>{};
         };
         cells.push_back(c);
@@ -1367,8 +1367,11 @@ inline std::string fig3a_report(const SuiteConfig& cfg, const SuiteStore& st, co
                             num_text(t.demonstrators, 1) + " + " + num_text(t.collect, 1) + " + " + num_text(t.train, 1),
                             num_text(t.mappo / t.pipeline, 2), eval_text(st, "fig3a/eval/mappo/n=" + sn), eval_text(st, "fig3a/eval/madbp/n=" + sn)});
     }
+    // The threads the stages were timed with, as recorded (stores before 2026-12-04 lack it: this run's).
+    std::string threads = std::to_string(cfg.threads);
+    if (const SuiteRecord* r = ok_record(st, "fig3a/mappo/k=1"); r && !r->get("threads").empty()) threads = r->get("threads");
     return "# Fig. 3a: training time, MAPPO on n agents against MA-DBP trained on n/2 (empty map)\n\n"
-           "Everything timed in-process on this machine, " + std::to_string(cfg.threads) + " threads. MA-DBP's time includes its "
+           "Everything timed in-process on this machine, " + threads + " threads. MA-DBP's time includes its "
            "demonstrators' training (MAPPO on 1..n/2 agents, each trained once and shared by both n), the demonstrations and "
            "its own training (" + std::to_string(cfg.fig3a_madbp_steps) + " steps, batch " + std::to_string(cfg.fig3a_batch) +
            "; " + std::to_string(cfg.fig3a_collect_episodes) + " demonstrations per team size). Success: success ± se / "
