@@ -3505,7 +3505,7 @@ struct TrafficConfig {
     // step costs 1 + crowd_weight x the robots routed through it per its free area (0: every robot
     // heads straight along its map route). Among obstacles at issue 47's density (1.4 a square
     // unit) 0.04 lifts 32 / 64 / 128 / 256 robots from .98 / .94 / .88 / .87 to 1.00 / .98 / .94 /
-    // .93 (docs/evaluation.md, "Routes around crowds"). Sparser teams (MovingAI maps with 32
+    // .93 (docs/evaluation.md, "Crowds at constant density"). Sparser teams (MovingAI maps with 32
     // robots: 0.09-0.5 a square unit) keep their map routes: there are no crowds to go around, and
     // the routes' small detours would change their plans for nothing.
     double crowd_weight = 0.04;
