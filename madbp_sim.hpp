@@ -44,6 +44,8 @@
 //        EvalResult::failed_seeds: the seeds of the episodes that failed.
 //        ExpertParams::stall_steps (150): a robot no nearer its goal for that long plans first,
 //        in an order drawn afresh every stall_steps (deadlocks at doorways; 0: fixed priorities).
+//        RouteGuide::near_reach (2.0): a subgoal toward a goal that near walks a wavefront made
+//        only as far as the walk reads, not cached (same subgoals; routes around crowds).
 //   0.3  PassageControl and its parameters move to madbp.hpp (the planner's traffic conventions).
 //        ClearanceGrid moves to Section 2; ReachGrid is gone (detail::all_reachable on its layout).
 //        movingai_scene / load_movingai_scene: MovingAI MAPF benchmark maps and scenarios as scenes.
@@ -2886,6 +2888,10 @@ public:
     // grid; else >= 2, the cells a walk reads around its start). Routes are the same either way:
     // a walk that reads past the band makes it again around the walk's own route.
     int band = 32;
+    // A subgoal toward a goal at most this far (world units) is walked on a wavefront made only
+    // as far as the walk reads (near_field), not cached: the same subgoal as the cached field
+    // gives, for a point a robot heads for a moment (a route around a crowd). 0: cached fields.
+    double near_reach = 2.0;
 
     RouteClearance route() const { return {min_clear, clear, narrow_cost}; }
 
@@ -2901,7 +2907,7 @@ public:
         // is not clear either, and a point `distance` along it would pass the goal.)
         if (!within && visible(p, goal, closed, clear)) return {p + (goal - p) * (distance / norm(goal - p)), false};
         bool no_route = false;
-        const RouteGoal found = walk_field(grid_.index(p), goal, closed, [&](const RouteField& steps) -> RouteGoal {
+        const auto walk = [&](const auto& steps) -> RouteGoal {
             int k = start_cell(steps, grid_.index(p));
             no_route = k < 0;
             if (no_route) return {goal, true};  // no route known from here: head straight for the goal
@@ -2916,7 +2922,9 @@ public:
                 if (steps[k] == 0) return {goal, true};
             }
             return {sub, false};
-        });
+        };
+        const RouteGoal found = norm(goal - p) <= near_reach ? walk(near_field(grid_.index(goal), grid_.index(p), closed))
+                                                             : walk_field(grid_.index(p), goal, closed, walk);
         // No way from here with cells closed (a robot told to go around a passage it already
         // stands in or beside): the way through them, not straight at the goal through the map,
         // which wedged robots against discs for good (docs/experiments.md, "Going around from
@@ -2982,7 +2990,7 @@ public:
     size_t workspace_bytes() const {
         size_t bytes = grid_.clear.capacity() * sizeof(float);
         for (const auto& f : fields_) bytes += f.second.steps.bytes();
-        return bytes;
+        return bytes + near_steps_.capacity() * sizeof(int);
     }
     size_t fields_cached() const { return fields_.size(); }
 
@@ -2998,6 +3006,8 @@ private:
     size_t field_bytes_ = 0;
     bool read_absent_ = false;  // a walk read a cell its band field does not hold
     WorldMap near_;             // visible()'s obstacles near its segment
+    std::vector<int> near_steps_, near_touched_;  // near_field's wavefront (-1 where untouched) and the cells it set
+    std::vector<std::vector<int>> near_ring_;     // its bucket queue
 
     void set_map(const WorldMap& map) {
         if (grid_.n > 0 && map == map_) return;
@@ -3008,6 +3018,52 @@ private:
         map_ = map;
         fields_.clear();
         field_bytes_ = 0;
+        near_steps_.clear();
+        near_touched_.clear();
+    }
+    // The wavefront of goal_cell (wavefront()'s costs, keeping out of `closed`) made only until a
+    // walk from cell `from` reads nothing else: it stops one step's cost (1 + narrow_cost) past
+    // the cost of the cell start_cell() starts from (`from`, or when `from` is not passable, the
+    // cheapest within two cells). Then every cell costing up to that holds its final cost and
+    // every other cell -1 or more than that, so start_cell() and downhill() choose as on the
+    // whole field. A passable `from` that cannot be reached makes the whole wavefront.
+    // Memory: one int a grid cell, kept from the first call; time: the cells within that cost of the goal.
+    const std::vector<int>& near_field(int goal_cell, int from, ClosedCells closed) {
+        const RouteClearance r = route();
+        const int n = grid_.n, max_step = 1 + r.narrow_cost, buckets = r.narrow_cost + 2;
+        if (near_steps_.size() != (size_t)n * n) near_steps_.assign((size_t)n * n, -1);  // made on first use
+        for (int k : near_touched_) near_steps_[k] = -1;
+        near_touched_.clear();
+        near_ring_.resize(buckets);
+        for (auto& level : near_ring_) level.clear();
+        const bool from_passable = from == goal_cell || (grid_.clear[from] >= r.min && !closed.closes(from));
+        const int from_row = from / n, from_col = from % n;
+        near_steps_[goal_cell] = 0;
+        near_touched_.push_back(goal_cell);
+        near_ring_[0].push_back(goal_cell);
+        long pending = 1;
+        int stop = std::numeric_limits<int>::max();
+        for (int d = 0; pending > 0 && d <= stop; ++d) {
+            std::vector<int>& level = near_ring_[d % buckets];
+            for (size_t i = 0; i < level.size(); ++i) {
+                const int k = level[i];
+                --pending;
+                if (near_steps_[k] != d) continue;  // reached more cheaply since it was queued
+                if (stop == std::numeric_limits<int>::max() &&
+                    (from_passable ? k == from : std::abs(k / n - from_row) <= 2 && std::abs(k % n - from_col) <= 2))
+                    stop = d + max_step;
+                const int d2 = d + r.step_cost(grid_.clear[k]);
+                detail::for_each_neighbour(n, k, [&](int k2) {
+                    if ((near_steps_[k2] >= 0 && near_steps_[k2] <= d2) || grid_.clear[k2] < r.min || closed.closes(k2)) return;
+                    if (near_steps_[k2] < 0) near_touched_.push_back(k2);
+                    near_steps_[k2] = d2;
+                    near_ring_[d2 % buckets].push_back(k2);
+                    ++pending;
+                });
+            }
+            level.clear();
+        }
+        return near_steps_;
     }
     // The field of goal_cell keeping out of `closed`, cached: a band field around the route from
     // cell `from` (from < 0 or band == 0: the whole grid); `remake` makes a cached band again

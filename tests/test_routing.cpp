@@ -165,8 +165,10 @@ TEST_CASE("routing: the expert's and the route guide's workspace stay within the
     const ExpertParams ep;
     const size_t states = 8 * (size_t)ep.max_expansions + 1;
     const size_t search_bound = 48 * states;  // nodes (16 bytes, capacity <= 2x) + table (4 bytes, <= 4x)
-    CHECK(expert.guide().workspace_bytes() <= grid_bytes + RouteGuide::kFieldCacheBytes);
-    CHECK(expert.workspace_bytes() <= grid_bytes + RouteGuide::kFieldCacheBytes + search_bound + (16u << 20));
+    // The grid, the cache and near_field's wavefront (4 bytes a cell, once a near goal is asked).
+    const size_t near_bytes = (size_t)g.n * g.n * sizeof(int);
+    CHECK(expert.guide().workspace_bytes() <= grid_bytes + near_bytes + RouteGuide::kFieldCacheBytes);
+    CHECK(expert.workspace_bytes() <= grid_bytes + near_bytes + RouteGuide::kFieldCacheBytes + search_bound + (16u << 20));
     // The dense space-time arrays of before 0.4 held (T + 1) x cells bytes of reservations alone.
     const size_t dense = (size_t)(kExpertMaxHorizon + ep.extra_horizon + 1) * g.n * g.n;
     CHECK(expert.workspace_bytes() < dense / 2);
@@ -182,7 +184,7 @@ TEST_CASE("routing: the expert's and the route guide's workspace stay within the
     }
     CHECK(guide.fields_cached() <= holds);
     CHECK(guide.fields_cached() >= holds - 1);
-    CHECK(guide.workspace_bytes() <= grid_bytes + RouteGuide::kFieldCacheBytes);
+    CHECK(guide.workspace_bytes() <= grid_bytes + near_bytes + RouteGuide::kFieldCacheBytes);
 }
 
 TEST_CASE("routing: a cached field reads back its wavefront in 2 bytes a cell, or 4 when a cost reaches 65535") {
@@ -239,6 +241,7 @@ TEST_CASE("routing: band fields give the routes whole fields give, in a fraction
     const WorldMap map = warehouse_map(half);
     RouteGuide banded, whole;
     whole.band = 0;
+    banded.near_reach = whole.near_reach = 0;  // the cached fields only (near fields: the next test)
     REQUIRE(banded.band > 0);
     Rng rng(11);
     int subgoals = 0, pushed = 0;
@@ -310,4 +313,55 @@ TEST_CASE("routing: obstacles_near answers a clearance threshold as the whole ma
                 CHECK(crop[row * Gl + col] == (static_clearance(map, c) < 0.5 * w ? 1.0f : 0.0f));
             }
     }
+}
+
+TEST_CASE("routing: a near goal's subgoal, walked on a wavefront made only as far as the walk reads, is the cached field's") {
+    // RouteGuide::near_field stops once the walk's start and a step past it are settled; the
+    // subgoals must be those of whole cached fields: from open ground, from beside obstacles
+    // (a start cell no robot centre fits in), with cells closed, with narrow cells, and from
+    // outside a closed room (no route: near_field then makes the whole wavefront).
+    RouteGuide near, whole;
+    whole.near_reach = 0;
+    whole.band = 0;
+    REQUIRE(near.near_reach >= 1.5);
+    Rng rng(5);
+    int compared = 0, beside = 0, closed_runs = 0;
+    for (int world = 0; world < 6; ++world) {
+        Rng map_rng(100 + world);
+        WorldMap map = make_map("obstacles", map_rng, 3.4);
+        const bool room = world == 5;
+        if (room) {  // a closed room around (1, 1)
+            map.boxes.push_back({{0.4, 0.4}, {1.6, 0.5}});
+            map.boxes.push_back({{0.4, 1.5}, {1.6, 1.6}});
+            map.boxes.push_back({{0.4, 0.4}, {0.5, 1.6}});
+            map.boxes.push_back({{1.5, 0.4}, {1.6, 1.6}});
+        }
+        const ClearanceGrid& g = whole.grid(map);
+        std::vector<int> closed_cells;  // a block of cells beside the middle, closed in half the queries
+        for (int k = 0; k < g.n * g.n; ++k)
+            if (std::fabs(g.centre(k).x + 0.5) < 0.2 && std::fabs(g.centre(k).y) < 0.6) closed_cells.push_back(k);
+        const ClosedCells closed{nullptr, -1, 77, &closed_cells};
+        for (int q = 0; q < 150; ++q) {
+            Vec2 p{rng.uniform(-3.2, 3.2), rng.uniform(-3.2, 3.2)};
+            Vec2 goal = p + Vec2{rng.uniform(-1.4, 1.4), rng.uniform(-1.4, 1.4)};
+            if (room && q % 2 == 0) goal = {rng.uniform(0.6, 1.4), rng.uniform(0.6, 1.4)};
+            goal = {std::clamp(goal.x, -3.3, 3.3), std::clamp(goal.y, -3.3, 3.3)};
+            const bool use_closed = q % 2 == 1;
+            const ClosedCells c = use_closed ? closed : ClosedCells{};
+            const RouteGoal a = near.subgoal(map, p, goal, 0.8, c), b = whole.subgoal(map, p, goal, 0.8, c);
+            CHECK(a.goal.x == b.goal.x);
+            CHECK(a.goal.y == b.goal.y);
+            CHECK(a.final == b.final);
+            ++compared;
+            beside += g.clear[g.index(p)] < kPassableClearance;
+            closed_runs += use_closed;
+        }
+        if (!room) {  // every goal near: none cached
+            CHECK(near.fields_cached() == 0);
+            CHECK(whole.fields_cached() > 50);
+        }
+    }
+    CHECK(compared == 900);
+    CHECK(beside > 20);
+    CHECK(closed_runs == 450);
 }
