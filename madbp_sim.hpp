@@ -2757,27 +2757,33 @@ struct RouteClearance {
     }
 };
 
-// The wavefront: the cost from every cell to `goal_cell` moving one cell per step in 8
-// directions through passable cells (the goal cell always counts) that `closed` does not close,
-// each step costing route.step_cost of the cell it enters (1 when narrow_cost is 0: the steps of
-// a breadth-first search). Dial's bucket queue (costs are small integers); -1 where the goal
-// cannot be reached. Memory: 4 bytes a cell, plus the queue.
-inline std::vector<int> wavefront(const ClearanceGrid& cg, int goal_cell, const RouteClearance& route, ClosedCells closed = {}) {
-    std::vector<int> steps((size_t)cg.n * cg.n, -1);
+namespace detail {
+// wavefront()'s search, into `steps` (-1 on entry wherever it may set a cell; `touched`, when
+// given, receives each cell it sets) with `ring` as its bucket queue. `settled(k, d)` is told each
+// cell as its cost d becomes final and returns the last cost to settle (INT_MAX: every cell);
+// the search stops after that cost's bucket (RouteGuide::near_field).
+template <class Settled>
+void wavefront_into(const ClearanceGrid& cg, int goal_cell, const RouteClearance& route, ClosedCells closed, std::vector<int>& steps,
+                    std::vector<std::vector<int>>& ring, std::vector<int>* touched, Settled settled) {
     const int buckets = route.narrow_cost + 2;  // costs are 1 or 1 + narrow_cost: a ring of this many levels
-    std::vector<std::vector<int>> ring(buckets);
+    ring.resize(buckets);
+    for (auto& level : ring) level.clear();
     steps[goal_cell] = 0;
+    if (touched) touched->push_back(goal_cell);
     ring[0].push_back(goal_cell);
     long pending = 1;
-    for (int d = 0; pending > 0; ++d) {
+    int stop = std::numeric_limits<int>::max();
+    for (int d = 0; pending > 0 && d <= stop; ++d) {
         std::vector<int>& level = ring[d % buckets];
         for (size_t i = 0; i < level.size(); ++i) {
             const int k = level[i];
             --pending;
             if (steps[k] != d) continue;  // reached more cheaply since it was queued
+            stop = std::min(stop, settled(k, d));
             const int d2 = d + route.step_cost(cg.clear[k]);  // moving from a neighbour into k
-            detail::for_each_neighbour(cg.n, k, [&](int k2) {
+            for_each_neighbour(cg.n, k, [&](int k2) {
                 if ((steps[k2] >= 0 && steps[k2] <= d2) || cg.clear[k2] < route.min || closed.closes(k2)) return;
+                if (touched && steps[k2] < 0) touched->push_back(k2);
                 steps[k2] = d2;
                 ring[d2 % buckets].push_back(k2);
                 ++pending;
@@ -2785,6 +2791,18 @@ inline std::vector<int> wavefront(const ClearanceGrid& cg, int goal_cell, const 
         }
         level.clear();
     }
+}
+}  // namespace detail
+
+// The wavefront: the cost from every cell to `goal_cell` moving one cell per step in 8
+// directions through passable cells (the goal cell always counts) that `closed` does not close,
+// each step costing route.step_cost of the cell it enters (1 when narrow_cost is 0: the steps of
+// a breadth-first search). Dial's bucket queue (costs are small integers); -1 where the goal
+// cannot be reached. Memory: 4 bytes a cell, plus the queue.
+inline std::vector<int> wavefront(const ClearanceGrid& cg, int goal_cell, const RouteClearance& route, ClosedCells closed = {}) {
+    std::vector<int> steps((size_t)cg.n * cg.n, -1);
+    std::vector<std::vector<int>> ring;
+    detail::wavefront_into(cg, goal_cell, route, closed, steps, ring, nullptr, [](int, int) { return std::numeric_limits<int>::max(); });
     return steps;
 }
 // Steps through cells with clearance >= min_clear (a breadth-first search, no narrow cost).
@@ -3030,39 +3048,18 @@ private:
     // Memory: one int a grid cell, kept from the first call; time: the cells within that cost of the goal.
     const std::vector<int>& near_field(int goal_cell, int from, ClosedCells closed) {
         const RouteClearance r = route();
-        const int n = grid_.n, max_step = 1 + r.narrow_cost, buckets = r.narrow_cost + 2;
+        const int n = grid_.n, from_row = from / n, from_col = from % n;
         if (near_steps_.size() != (size_t)n * n) near_steps_.assign((size_t)n * n, -1);  // made on first use
         for (int k : near_touched_) near_steps_[k] = -1;
         near_touched_.clear();
-        near_ring_.resize(buckets);
-        for (auto& level : near_ring_) level.clear();
         const bool from_passable = from == goal_cell || (grid_.clear[from] >= r.min && !closed.closes(from));
-        const int from_row = from / n, from_col = from % n;
-        near_steps_[goal_cell] = 0;
-        near_touched_.push_back(goal_cell);
-        near_ring_[0].push_back(goal_cell);
-        long pending = 1;
-        int stop = std::numeric_limits<int>::max();
-        for (int d = 0; pending > 0 && d <= stop; ++d) {
-            std::vector<int>& level = near_ring_[d % buckets];
-            for (size_t i = 0; i < level.size(); ++i) {
-                const int k = level[i];
-                --pending;
-                if (near_steps_[k] != d) continue;  // reached more cheaply since it was queued
-                if (stop == std::numeric_limits<int>::max() &&
-                    (from_passable ? k == from : std::abs(k / n - from_row) <= 2 && std::abs(k % n - from_col) <= 2))
-                    stop = d + max_step;
-                const int d2 = d + r.step_cost(grid_.clear[k]);
-                detail::for_each_neighbour(n, k, [&](int k2) {
-                    if ((near_steps_[k2] >= 0 && near_steps_[k2] <= d2) || grid_.clear[k2] < r.min || closed.closes(k2)) return;
-                    if (near_steps_[k2] < 0) near_touched_.push_back(k2);
-                    near_steps_[k2] = d2;
-                    near_ring_[d2 % buckets].push_back(k2);
-                    ++pending;
-                });
-            }
-            level.clear();
-        }
+        bool started = false;
+        detail::wavefront_into(grid_, goal_cell, r, closed, near_steps_, near_ring_, &near_touched_, [&](int k, int d) {
+            if (started || !(from_passable ? k == from : std::abs(k / n - from_row) <= 2 && std::abs(k % n - from_col) <= 2))
+                return std::numeric_limits<int>::max();
+            started = true;
+            return d + 1 + r.narrow_cost;  // one step's cost past the walk's start
+        });
         return near_steps_;
     }
     // The field of goal_cell keeping out of `closed`, cached: a band field around the route from
