@@ -3053,12 +3053,10 @@ private:
         for (int k : near_touched_) near_steps_[k] = -1;
         near_touched_.clear();
         const bool from_passable = from == goal_cell || (grid_.clear[from] >= r.min && !closed.closes(from));
-        bool started = false;
+        // The first start cell settled sets the stop (wavefront_into keeps the least returned).
         detail::wavefront_into(grid_, goal_cell, r, closed, near_steps_, near_ring_, &near_touched_, [&](int k, int d) {
-            if (started || !(from_passable ? k == from : std::abs(k / n - from_row) <= 2 && std::abs(k % n - from_col) <= 2))
-                return std::numeric_limits<int>::max();
-            started = true;
-            return d + 1 + r.narrow_cost;  // one step's cost past the walk's start
+            const bool start = from_passable ? k == from : std::abs(k / n - from_row) <= 2 && std::abs(k % n - from_col) <= 2;
+            return start ? d + 1 + r.narrow_cost : std::numeric_limits<int>::max();  // one step's cost past the walk's start
         });
         return near_steps_;
     }

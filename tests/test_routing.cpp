@@ -325,7 +325,7 @@ TEST_CASE("routing: a near goal's subgoal, walked on a wavefront made only as fa
     whole.band = 0;
     REQUIRE(near.near_reach >= 1.5);
     Rng rng(5);
-    int compared = 0, beside = 0, closed_runs = 0;
+    int compared = 0, beside = 0, closed_runs = 0, from_outside_room = 0;
     for (int world = 0; world < 6; ++world) {
         Rng map_rng(100 + world);
         WorldMap map = make_map("obstacles", map_rng, 3.4);
@@ -355,6 +355,8 @@ TEST_CASE("routing: a near goal's subgoal, walked on a wavefront made only as fa
             ++compared;
             beside += g.clear[g.index(p)] < kPassableClearance;
             closed_runs += use_closed;
+            const bool inside = p.x > 0.4 && p.x < 1.6 && p.y > 0.4 && p.y < 1.6;
+            from_outside_room += room && q % 2 == 0 && !inside && norm(goal - p) <= near.near_reach;
         }
         if (!room) {  // every goal near: none cached
             CHECK(near.fields_cached() == 0);
@@ -364,4 +366,5 @@ TEST_CASE("routing: a near goal's subgoal, walked on a wavefront made only as fa
     CHECK(compared == 900);
     CHECK(beside > 20);
     CHECK(closed_runs == 450);
+    CHECK(from_outside_room > 5);  // near goals no route reaches: the whole wavefront
 }
