@@ -3514,8 +3514,6 @@ struct TrafficConfig {
     double crowd_detour = 0;       // > 0: a route around crowds longer than this times the straight way is not taken
     double crowd_time = 0;         // > 0: a route counts in a cell only within about this many steps of
                                    // when its robot is due there at cruise (0: wherever it passes)
-    double crowd_counterflow = 0;  // in [0, 1]: a route through a cell counts 1 - this x the cosine between its
-                                   // heading there and the step's (0: every route counts 1; 1: the same way 0, the opposite way 2)
 };
 
 // Everything a plan uses, each default written once, here: who plans with whom, the sampler, its
@@ -3749,8 +3747,6 @@ inline const std::vector<PlannerSetting>& planner_settings() {
          +[](C& c) -> double& { return c.traffic.crowd_detour; }},
         {"traffic.crowd_time", 0, 1000, "routes around crowds count a robot in a cell only within this many steps of its time there (0 = whenever)", nullptr, 0,
          +[](C& c) -> double& { return c.traffic.crowd_time; }},
-        {"traffic.crowd_counterflow", 0, 1, "routes around crowds: a route counts 1 - this x the cosine between its heading and the step's (0 = every route counts 1)", nullptr, 0,
-         +[](C& c) -> double& { return c.traffic.crowd_counterflow; }},
         {"follower.replan_every", 1, 1000, "steps executed per plan (m)", nullptr, 0,
          +[](C& c) -> int& { return c.follower.replan_every; }},
         {"follower.safety_filter", 0, 1, "the SPEC 3.2 safety filter runs after the tracker", nullptr, 0,
@@ -4851,7 +4847,6 @@ public:
         for (auto it = routes_.begin(); it != routes_.end();)
             it = std::binary_search(present_.begin(), present_.end(), it->first) ? std::next(it) : routes_.erase(it);
         std::fill(demand_.begin(), demand_.end(), 0.f);
-        std::fill(flow_.begin(), flow_.end(), Vec2{});
         index_.assign(n, -1);
         for (int i = 0; i < n; ++i) {
             if (at_goal[i]) continue;
@@ -4868,8 +4863,8 @@ public:
             if (stale) {
                 if (index_[i] >= 0) add(r, index_[i], pos[i], -1);
                 if (norm(goal[i] - pos[i]) > kCrowdMinWay * cell_ && open_ground(guide, map, pos[i], goal[i])) {
-                    const double way = route(r, pos[i], goal[i], p.crowd_weight, p.crowd_counterflow);
-                    if (p.crowd_detour > 0 && way > p.crowd_detour * norm(goal[i] - pos[i]) + cell_) route(r, pos[i], goal[i], 0, 0);
+                    const double way = route(r, pos[i], goal[i], p.crowd_weight);
+                    if (p.crowd_detour > 0 && way > p.crowd_detour * norm(goal[i] - pos[i]) + cell_) route(r, pos[i], goal[i], 0);
                 }
                 else r.cells.assign(1, cell_of(goal[i]));  // near, or a winding way: its map route, as without crowds
                 r.goal = goal[i], r.made = step, r.straight = along_straight_way(r, pos[i], goal[i]);
@@ -4894,7 +4889,6 @@ private:
     std::vector<float> area_;      // per coarse cell: the share of it a robot's centre fits in (0: none)
     std::vector<uint8_t> links_;   // per coarse cell: bit d, the step to neighbour d (kDr, kDc) is clear
     std::vector<float> demand_;    // per time bin and coarse cell (bin * side^2 + cell): routes through it
-    std::vector<Vec2> flow_;       // per time bin and coarse cell: the sum of those routes' unit headings there
     int bins_ = 1;                 // time bins: 1 (routes count whenever) or kCrowdBins
     double bin_steps_ = 0;         // steps a time bin spans (crowd_time; 0: one bin for all time)
     double step_length_ = ExpertParams{}.cell;  // world units a robot covers a step at cruise
@@ -4933,7 +4927,6 @@ private:
         area_.assign(cells, 0.f);
         links_.assign(cells, 0);
         demand_.assign((size_t)cells * bins_, 0.f);
-        flow_.assign((size_t)cells * bins_, Vec2{});
         const ClearanceGrid& g = guide.grid(map);
         std::vector<int> fits(cells, 0), all(cells, 0);
         std::vector<double> best(cells, std::numeric_limits<double>::infinity());
@@ -4974,20 +4967,15 @@ private:
         if (bins_ == 1) return 0;
         return (int)std::min<double>(bins_, std::floor(way / step_length_ / bin_steps_));
     }
-    // Adds `sign` to the demand of r's cells from index `from` on, for its robot at q, and its
-    // heading there (from the point before to the point after) to their flow: with time bins,
-    // each cell in the bin of its arrival and the bins either side.
+    // Adds `sign` to the demand of r's cells from index `from` on, for its robot at q: with time
+    // bins, each cell in the bin of its arrival and the bins either side.
     void add(const Route& r, int from, Vec2 q, float sign) {
         const size_t cells = (size_t)side_ * side_;
         double way = 0;
         for (size_t k = (size_t)from; k < r.cells.size(); ++k) {
-            const Vec2 before = q, after = point_[r.cells[std::min(k + 1, r.cells.size() - 1)]];
             way += norm(point_[r.cells[k]] - q), q = point_[r.cells[k]];
-            const double span = norm(after - before);
-            const Vec2 heading = span > 1e-9 ? (after - before) * (sign / span) : Vec2{};
             const int b = bin_of(way);
-            for (int bb = std::max(0, b - 1); bb <= std::min(bins_ - 1, b + 1); ++bb)
-                demand_[bb * cells + r.cells[k]] += sign, flow_[bb * cells + r.cells[k]] = flow_[bb * cells + r.cells[k]] + heading;
+            for (int bb = std::max(0, b - 1); bb <= std::min(bins_ - 1, b + 1); ++bb) demand_[bb * cells + r.cells[k]] += sign;
         }
     }
     // The index of r's cell whose centre is nearest q, or -1 when q strayed more than a cell and
@@ -5002,11 +4990,9 @@ private:
         return best;
     }
     // Dijkstra over the coarse cells from a's to goal's: a step costs its length times
-    // 1 + weight x demand / area of the cell stepped into (an area below a quarter counts a quarter),
-    // the demand less counterflow x the flow there along the step (routes going the same way count
-    // less, the opposite way more). Returns the route's length through its cells' points (0 when
-    // there is no coarse way).
-    double route(Route& r, Vec2 a, Vec2 goal, double weight, double counterflow) {
+    // 1 + weight x demand / area of the cell stepped into (an area below a quarter counts a quarter).
+    // Returns the route's length through its cells' points (0 when there is no coarse way).
+    double route(Route& r, Vec2 a, Vec2 goal, double weight) {
         const int cells = side_ * side_, start = cell_of(a), end = cell_of(goal);
         cost_.assign(cells, std::numeric_limits<double>::infinity());
         way_.assign(cells, 0.0);
@@ -5027,12 +5013,9 @@ private:
                 if (r2 < 0 || r2 >= side_ || c2 < 0 || c2 >= side_) continue;
                 const int q2 = r2 * side_ + c2;
                 if (area_[q2] == 0) continue;
-                const Vec2 from_point = q == start ? a : point_[q];
-                const double length = norm(point_[q2] - from_point);
+                const double length = norm(point_[q2] - (q == start ? a : point_[q]));
                 const int b = bin_of(way_[q] + length);
-                double demand = b < bins_ ? demand_[(size_t)b * cells + q2] : 0.f;
-                if (counterflow > 0 && b < bins_ && length > 1e-9)
-                    demand = std::max(0.0, demand - counterflow * dot(point_[q2] - from_point, flow_[(size_t)b * cells + q2]) / length);
+                const float demand = b < bins_ ? demand_[(size_t)b * cells + q2] : 0.f;
                 const double step = length * (1 + weight * demand / std::max(area_[q2], 0.25f));
                 if (d + step < cost_[q2]) {
                     cost_[q2] = d + step, way_[q2] = way_[q] + length, from_[q2] = q;
