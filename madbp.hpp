@@ -4808,8 +4808,6 @@ inline ExpertTraffic passage_traffic(const TrafficConfig& traffic = expert_traff
 // through a crowded middle goes around it when that costs less. Robots are routed one at a time,
 // in index order, each against the routes before it, and again every kCrowdReroute steps (or when
 // pushed off their route or given a new goal), each against everyone else's as they stand then.
-// Each robot's remaking has its own phase (remake_due), so a plan remakes the routes of the few
-// robots due then, not every route at once.
 // Only on open ground and for a way of kCrowdMinWay cells or more: a robot whose map route winds
 // (open_ground), or that is near its goal, keeps its map route. Parked robots are not counted:
 // every route must end among them, and counting them sent robots near their goals on detours.
@@ -4837,13 +4835,6 @@ public:
     static constexpr int kCrowdMinWay = 4;     // a robot fewer cells than this from its goal heads for it
     static constexpr int kCrowdBins = 16;      // time bins of crowd_time steps each (later arrivals count in the last)
 
-    // A route of robot `id` made at step `made` is made again at `step`: every kCrowdReroute steps,
-    // at the robot's phase (its id modulo kCrowdReroute).
-    static bool remake_due(int id, long made, long step) {
-        const long phase = ((id % kCrowdReroute) + kCrowdReroute) % kCrowdReroute;
-        return (step + phase) / kCrowdReroute > (made + phase) / kCrowdReroute;
-    }
-
     // Where each of the n robots heads (target[i]: goal[i] where its route goes straight there).
     void update(RouteGuide& guide, const WorldMap& map, const TrafficConfig& p, int n, const Vec2* pos, const Vec2* goal,
                 const char* at_goal, const int* ids, long step, std::vector<Vec2>& target) {
@@ -4868,7 +4859,7 @@ public:
         for (int i = 0; i < n; ++i) {
             if (at_goal[i]) continue;
             Route& r = routes_[ids[i]];
-            const bool stale = index_[i] < 0 || !(r.goal == goal[i]) || step < r.made || remake_due(ids[i], r.made, step);
+            const bool stale = index_[i] < 0 || !(r.goal == goal[i]) || step < r.made || step - r.made >= kCrowdReroute;
             if (stale) {
                 if (index_[i] >= 0) add(r, index_[i], pos[i], -1);
                 if (norm(goal[i] - pos[i]) > kCrowdMinWay * cell_ && open_ground(guide, map, pos[i], goal[i])) {
