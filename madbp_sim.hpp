@@ -2393,6 +2393,7 @@ public:
             plan_ = std::move(p);
             plan_t0_ = world.t();
             total_ms_ += plan_.plan_ms;
+            max_ms_ = std::max(max_ms_, plan_.plan_ms);
             plans_++;
         }
         StepModel model(world.config());
@@ -2417,6 +2418,7 @@ public:
         return u;
     }
     double decision_ms() const override { return plans_ ? total_ms_ / plans_ : 0; }
+    double max_decision_ms() const { return max_ms_; }  // the longest plan so far: a controller's worst latency
     int plans() const { return plans_; }
     const Plan& plan() const { return plan_; }
 
@@ -2439,7 +2441,7 @@ private:
     FollowerConfig cfg_;
     Plan plan_;
     int plan_t0_ = 0, plans_ = 0;
-    double total_ms_ = 0;
+    double total_ms_ = 0, max_ms_ = 0;
     std::map<int, double> first_distance_;  // agent id -> distance to its goal when first seen
     struct Jam {  // per robot (unjam): how it has fared
         double nearest = std::numeric_limits<double>::infinity();  // to its goal so far

@@ -151,4 +151,5 @@ TEST_CASE("tools: bench --plan --episode-steps times the plans of an episode as 
     CHECK(field("episode_plans") >= 3);
     CHECK(field("episode_plans") <= 12);
     CHECK(field("episode_ms_per_plan") > 0);
+    CHECK(field("episode_max_ms") >= field("episode_ms_per_plan"));  // the longest plan is at least the mean
 }

@@ -99,17 +99,17 @@ inline int bench_plan(Args& a) {
                     "ms/robot: ms/plan per robot; growth: ms/plan grows as n^growth from the row above (1 = linear in robots);\n"
                     "ms_%dt: a first plan on %d threads, x%dt: its speed-up, measured in the same run;\n"
                     "%s"
-                    "%4s %6s %10s %10s %10s %10s %10s %8s %9s %6s %9s %6s %10s\n",
+                    "%4s %6s %10s %10s %10s %10s %10s %8s %9s %6s %9s %6s %10s %11s\n",
                     model_path.c_str(), S, sc.guidance, sc.keep_right, sc.candidates,
                     madbp::kSmallPlanWindows, choice.settings.sampler.small_plan_candidates, sc.warm_start, choice.settings.sampler.line_start ? 1 : 0, config.channels[0], config.dim * config.kernel, config.dim * config.kernel, config.horizon * 8, gemm,
                     map.c_str(), half_sizes.given > 0 ? ("half-size " + madbp::number_text(half_sizes.given)).c_str()
                                          : "half-size at constant density (1.2 up to 8 robots, 3.4 at 64, 13.6 at 1024)",
                     threads, threads, threads,
-                    episode_steps > 0 ? ("episode_ms: the mean plan in the first " + std::to_string(episode_steps) +
+                    episode_steps > 0 ? ("episode_ms, episode_max: the mean and the longest plan in the first " + std::to_string(episode_steps) +
                                          " steps of an episode from the same world, as eval plans them (--episode-steps)\n").c_str() : "",
                     "n",
                     "scenes", "ms/plan", "warm_ms", "new_ms", "expert_ms", "GFLOP/s", "of GEMM", "ms/robot", "growth",
-                    ("ms_" + std::to_string(threads) + "t").c_str(), ("x" + std::to_string(threads) + "t").c_str(), "episode_ms");
+                    ("ms_" + std::to_string(threads) + "t").c_str(), ("x" + std::to_string(threads) + "t").c_str(), "episode_ms", "episode_max");
     double robot_ms = 0, robot_warm_ms = 0;
     double last_ms = 0;  // the row above: the growth exponent
     long last_n = 0;
@@ -197,7 +197,7 @@ inline int bench_plan(Args& a) {
         }
         // The episode: a fresh planner, as eval's episodes start with, on the same world with eval's
         // step limit (or K steps if more); a team that finishes early runs fewer steps (episode_steps_run).
-        double episode_ms = NAN;
+        double episode_ms = NAN, episode_max_ms = NAN;
         int episode_plans = 0, episode_steps_run = 0;
         if (episode_steps > 0) {
             first_planner.reset();
@@ -210,18 +210,18 @@ inline int bench_plan(Args& a) {
                 if (!w.done()) w.step(follower.act(w)), ++episode_steps_run;
                 tick("episode steps");
             }
-            episode_ms = follower.decision_ms(), episode_plans = follower.plans();
+            episode_ms = follower.decision_ms(), episode_max_ms = follower.max_decision_ms(), episode_plans = follower.plans();
         }
         progress = nullptr;  // the line ends before the row
         if (json)
             std::printf("%s\n", Json().add("bench", "plan").add("map", map).add("agents", n).add("half_size", half_size).add("scenes", scenes).add("per_scene", per_scene).add("sample_steps", S)
                                     .add("guidance", sc.guidance).add("keep_right", sc.keep_right).add("candidates", drawn).add("warm_start", sc.warm_start).add("line_start", choice.settings.sampler.line_start ? 1 : 0).add("ms_per_plan", ms).add("warm_ms_per_plan", warm_ms).add("new_world_ms_per_plan", new_ms).add("expert_ms_per_plan", expert_ms).add("ms_per_robot", ms / n).add("growth", growth).add("threads", threads).add("threads_ms_per_plan", 1000 * threads_secs / plans).add("threads_speedup", secs / threads_secs)
-                                    .add("episode_steps", episode_steps).add("episode_steps_run", episode_steps_run).add("episode_plans", episode_plans).add("episode_ms_per_plan", episode_ms)
+                                    .add("episode_steps", episode_steps).add("episode_steps_run", episode_steps_run).add("episode_plans", episode_plans).add("episode_ms_per_plan", episode_ms).add("episode_max_ms", episode_max_ms)
                                     .add("gflops", rate).add("gemm_gflops", gemm).add("share_of_gemm", rate / gemm).line().c_str());
         else {
             const std::string shape = std::to_string(scenes) + "x" + std::to_string(per_scene) + (drawn > 1 ? "x" + std::to_string(drawn) : "");
-            std::printf("%4ld %6s %10.3f %10.3f %10.3f %10.3f %10.1f %7.0f%% %9.3f %6.2f %9.3f %6.2f %10.3f\n", n, shape.c_str(), ms, warm_ms, new_ms, expert_ms, rate, 100 * rate / gemm,
-                        ms / n, growth, 1000 * threads_secs / plans, secs / threads_secs, episode_ms);
+            std::printf("%4ld %6s %10.3f %10.3f %10.3f %10.3f %10.1f %7.0f%% %9.3f %6.2f %9.3f %6.2f %10.3f %11.3f\n", n, shape.c_str(), ms, warm_ms, new_ms, expert_ms, rate, 100 * rate / gemm,
+                        ms / n, growth, 1000 * threads_secs / plans, secs / threads_secs, episode_ms, episode_max_ms);
         }
         std::fflush(stdout);
         last_ms = ms, last_n = n;

@@ -300,8 +300,9 @@ int cmd_bench(Args& a) {
             "                 2): the first plans again on T threads, side by side; --no-expert: skip\n"
             "                 the guided expert's column (seconds per plan beyond 128 robots);\n"
             "                 --map empty|obstacles|barrier: the worlds' map (default empty);\n"
-            "                 --episode-steps K: also the mean plan in an episode's first K steps, as\n"
-            "                 eval plans them (goal fields, early replans; default 0: not run)\n"
+            "                 --episode-steps K: also the mean and the longest plan in an episode's\n"
+            "                 first K steps, as eval plans them (goal fields, early replans,\n"
+            "                 routes remade; default 0: not run)\n"
             "  --json         one JSON object per thread count\n");
         return 0;
     }
