@@ -3761,8 +3761,6 @@ inline const std::vector<PlannerSetting>& planner_settings() {
          +[](C& c) -> int& { return c.follower.unjam; }},
         {"follower.unjam_near", 0, 10, "with unjam: a robot standing still with another this near, world units, counts as held (0 = off: only the filter holds)", nullptr, 0,
          +[](C& c) -> double& { return c.follower.unjam_near; }},
-        {"follower.stall_first", 0, 100000, "with unjam: a robot no nearer its goal for this many steps goes first in the safety filter (0 = off)", nullptr, 0,
-         +[](C& c) -> int& { return c.follower.stall_first; }},
         {"follower.filter_rate", 0.01, 9.99, "the safety filter's barrier rate, 1/s (below 1/dt)", nullptr, 0,
          +[](C& c) -> double& { return c.follower.filter.rate; }},
         {"follower.filter_static_margin", 0, 1, "the safety filter's gap kept to obstacles and walls beyond touching, world units (routes pass cells 0.002 beyond)", nullptr, 0,

@@ -2365,11 +2365,6 @@ struct FollowerConfig {
     // backs out; 0.35 solves such knots at 64 robots but loses others at 128, so it is off
     // (docs/experiments.md, "Standing still in a knot").
     double unjam_near = 0;
-    // With unjam: a robot not at its goal that has come no nearer it by 0.05 for this many steps
-    // goes first in the filter, before every robot that has (0: off). Fixed priorities can hold a
-    // knot's last robots behind those still moving around it; the guided expert plans its
-    // stalled robots first (ExpertParams::stall_steps).
-    int stall_first = 0;
 };
 class PlanFollower : public Policy {
 public:
@@ -2435,14 +2430,7 @@ public:
         for (const Agent& a : world.agents())
             if (!first_distance_.count(a.id)) first_distance_[a.id] = norm(a.goal - a.pos);
         std::vector<int> order;
-        const int t = world.t();
-        auto stalled_for = [&](const Agent& a) {  // steps since it last came nearer its goal (stall_first), else 0
-            if (cfg_.stall_first <= 0) return 0;
-            auto jam = jams_.find(a.id);
-            const int steps = jam == jams_.end() ? 0 : t - jam->second.nearer_at;
-            return steps >= cfg_.stall_first ? steps : 0;
-        };
-        priority_order(world, [&](const Agent& a) { const int s = stalled_for(a); return s > 0 ? 1e9 + s : first_distance_[a.id]; }, order);
+        priority_order(world, [&](const Agent& a) { return first_distance_[a.id]; }, order);
         std::vector<double> w(n);
         for (int rank = 0; rank < n; ++rank) w[order[rank]] = priority_weight_of(rank, n, cfg_.priority_weight);
         return w;
