@@ -126,6 +126,8 @@
 //        would close off a pocket (a dead end) that another's route enters or leaves waits beside
 //        it until that robot is through. follow_order: a robot going on to a goal in a passage
 //        follows the robot ahead of it there that goes deeper.
+//        MapFields::kGoalFieldBytes: at most 16 MB of goal fields (max_goal_fields()), so a
+//        whole episode of 256 robots holds ~60 MB, not ~115 (issue 47).
 //   0.3  PlannerConfig: every planner setting in one struct, its defaults written once.
 //        PlannerConfig::tuned() (the default) and paper() (the paper's planner) presets.
 //        planner_settings(): one table behind validate(), set(), --set and --list-settings.
@@ -2904,10 +2906,17 @@ struct DistanceField : NodeGrid {
 // around the obstacles (a "goal field": Dijkstra over goal_grid, every kGoalStride-th node of the
 // clearance field's each way, 8-connected, a step into a node closer than `radius` to the map
 // costing kBlockedFactor times its length), read the same way. Goal fields are made by add_goals
-// and kept for the map (at most kMaxGoalFields; a new goal takes the place of a field the plan
+// and kept for the map (at most max_goal_fields(); a new goal takes the place of a field the plan
 // does not use).
 struct MapFields {
     static constexpr int kMaxGoalFields = 256;
+    // And at most this many bytes of them. A field is a float per goal-grid node, up to 264 KB in
+    // a world of half-size 6.8 or more, and once every robot of a team of 256 sees its goal a
+    // whole episode held 111-118 MB, 64 MB of it goal fields; with 16 MB (63 fields there) it holds
+    // 59-61 MB, the robots past the cap keeping the straight-line goal term (docs/speed.md, "Goal
+    // fields within 16 MB"). A constant-density team of 64 robots (fields of 131 KB) or any smaller
+    // world keeps every field, as before.
+    static constexpr size_t kGoalFieldBytes = size_t(16) << 20;
     static constexpr double kBlockedFactor = 20;
     // Goal fields on every other node (cell 0.04 in the standard world): a quarter of the nodes,
     // so a first plan after new goals costs about a warm plan more instead of two; the tuning suite
@@ -2932,6 +2941,12 @@ struct MapFields {
         used_.clear();
         steps_radius_ = -1;  // the step lengths are the old map's
     }
+    // How many goal fields are kept on this map: kMaxGoalFields, fewer where that many would pass
+    // kGoalFieldBytes.
+    int max_goal_fields() const {
+        const size_t field_bytes = (size_t)goal_grid.nodes * goal_grid.nodes * sizeof(float);
+        return (int)std::clamp<size_t>(kGoalFieldBytes / std::max<size_t>(field_bytes, 1), 1, kMaxGoalFields);
+    }
     // The clearance at goal-grid node (row, col): the clearance field's node there (its last
     // row or column where the goal grid reaches past it).
     float clearance_at_goal_node(int row, int col) const {
@@ -2947,7 +2962,7 @@ struct MapFields {
         return nullptr;
     }
     // Makes the goal fields of every active agent of `batch` that has none yet (real goals only:
-    // a route subgoal is in straight view, SceneBatch::goal_final). With kMaxGoalFields kept, a new
+    // a route subgoal is in straight view, SceneBatch::goal_final). With max_goal_fields() kept, a new
     // goal takes the place of a field this call's agents do not use; when all are in use, its agent
     // keeps the straight-line goal term (window_cost). Clearing the cache when full, as before
     // 2026-12-04, rebuilt every field every plan once more than kMaxGoalFields robots of a team saw
@@ -2968,7 +2983,7 @@ struct MapFields {
             const Vec2 g = batch.goal(a, c);
             if (find(g.x, g.y)) continue;
             size_t slot = goals.size();
-            if (slot >= (size_t)kMaxGoalFields) {
+            if (slot >= (size_t)max_goal_fields()) {
                 while (spare < goals.size() && used_[spare] == call_) ++spare;
                 if (spare == goals.size()) continue;  // every field in use: the straight-line term
                 slot = spare;

@@ -339,9 +339,10 @@ TEST_CASE("goal fields: a team with more goals than the cache holds keeps its fi
     // Before 2026-12-04 the cache was cleared when full, in the middle of add_goals: past
     // kMaxGoalFields goals every plan rebuilt every field, and its first agents lost theirs.
     const ModelConfig c = tiny_config();
-    const int cap = MapFields::kMaxGoalFields, n = cap + 40;
     MapFields f;
     f.set_map(WorldMap{});
+    const int cap = f.max_goal_fields(), n = cap + 40;
+    REQUIRE(cap == MapFields::kMaxGoalFields);  // the standard world's fields are small
     Rng rng(3);
     std::vector<Vec2> goal(n);
     for (Vec2& g : goal) g = {rng.uniform(-1.1, 1.1), rng.uniform(-1.1, 1.1)};
@@ -369,6 +370,37 @@ TEST_CASE("goal fields: a team with more goals than the cache holds keeps its fi
     f.add_goals(later, c, 0.1);
     CHECK(f.goals.size() == (size_t)cap);
     CHECK(held(later) == cap);
+}
+
+TEST_CASE("goal fields: a large world keeps at most kGoalFieldBytes of them") {
+    // A whole episode of 256 robots held 64 MB of goal fields (docs/speed.md); the cap in bytes
+    // bounds them, and a constant-density world of 64 robots still keeps a field for every robot.
+    auto fields_of = [](double half_size) {
+        WorldMap m;
+        m.half_size = half_size;
+        MapFields f;
+        f.set_map(m);
+        return f;
+    };
+    CHECK(fields_of(3.4).max_goal_fields() >= 64);
+    MapFields f = fields_of(6.8);
+    const int cap = f.max_goal_fields();
+    CHECK(cap < MapFields::kMaxGoalFields);
+    const ModelConfig c = tiny_config();
+    Rng rng(5);
+    const int n = cap + 10;
+    SceneBatch s;
+    s.resize(n, 1, c, true);
+    for (int a = 0; a < n; ++a) {
+        const Vec2 goal{rng.uniform(-6, 6), rng.uniform(-6, 6)};
+        encode_agent(s, a, 0, goal + Vec2{0.3, 0}, goal, f.clearance.map, c);
+    }
+    f.add_goals(s, c, 0.1);
+    CHECK(f.goals.size() == (size_t)cap);
+    size_t bytes = 0;
+    for (const MapFields::GoalField& g : f.goals) bytes += g.d.size() * sizeof(float);
+    CHECK(bytes <= MapFields::kGoalFieldBytes);
+    CHECK(bytes + f.goals[0].d.size() * sizeof(float) > MapFields::kGoalFieldBytes);  // no field more fits
 }
 
 TEST_CASE("goal fields: the bucket queue gives a binary heap's Dijkstra to the bit") {
