@@ -2977,13 +2977,14 @@ struct MapFields {
             const Vec2 g = batch.goal(a, c);
             if (const GoalField* field = find(g.x, g.y)) used_[(size_t)(field - goals.data())] = call_;
         }
+        const size_t cap = (size_t)max_goal_fields();
         size_t spare = 0;  // the next field to look at for one this call does not use
         for (int a = 0; a < batch.agents(); ++a) {
             if (!wanted(a)) continue;
             const Vec2 g = batch.goal(a, c);
             if (find(g.x, g.y)) continue;
             size_t slot = goals.size();
-            if (slot >= (size_t)max_goal_fields()) {
+            if (slot >= cap) {
                 while (spare < goals.size() && used_[spare] == call_) ++spare;
                 if (spare == goals.size()) continue;  // every field in use: the straight-line term
                 slot = spare;
