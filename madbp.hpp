@@ -119,10 +119,9 @@
 //        CrowdRoutes, traffic.crowd_weight, crowd_density and crowd_cell: in a team larger than a
 //        scene with at least crowd_density (1) robots a square unit, robots are routed around the
 //        crowds the others' routes make (issue 47; on by default since 2026-12-04).
-//        traffic.crowd_time (25 since 2026-12-06, with crowd_weight 0.1): routes around crowds
-//        count a robot in a cell only about when it is due there. traffic.crowd_detour (an
-//        option, off): no detour longer than crowd_detour times the straight way.
-//        DiffusionPlanner::last_crowd_targets().
+//        traffic.crowd_time and crowd_detour (options, off): routes around crowds count a robot in
+//        a cell only about when it is due there, and take no detour longer than crowd_detour times
+//        the straight way. DiffusionPlanner::last_crowd_targets().
 //        traffic.pocket_order (the expert's default; off for the planner): a robot whose goal
 //        would close off a pocket (a dead end) that another's route enters or leaves waits beside
 //        it until that robot is through. follow_order: a robot going on to a goal in a passage
@@ -3521,19 +3520,15 @@ struct TrafficConfig {
     // robots per square world unit, in a world larger than the training world: a coarse cell's
     // step costs 1 + crowd_weight x the robots routed through it per its free area (0: every robot
     // heads straight along its map route). Among obstacles at issue 47's density (1.4 a square
-    // unit) 0.04 lifted 32 / 64 / 128 / 256 robots from .98 / .94 / .88 / .87 to 1.00 / .98 / .94 /
-    // .93 (docs/evaluation.md, "Crowds at constant density"). Counted whenever a route passes, the
-    // robots routed through a middle cell grow with the world's side, and so do the detours: at
-    // 1024 robots the long trips that end an episode came within 1-6 % of its step limit. Counted
-    // only when due there (crowd_time 25, weight 0.1), the same episodes took 9-13 % fewer steps
-    // (docs/experiments.md, "Routes around crowds in time at 1024 robots"). Sparser teams (MovingAI maps with 32
+    // unit) 0.04 lifts 32 / 64 / 128 / 256 robots from .98 / .94 / .88 / .87 to 1.00 / .98 / .94 /
+    // .93 (docs/evaluation.md, "Crowds at constant density"). Sparser teams (MovingAI maps with 32
     // robots: 0.09-0.5 a square unit) keep their map routes: there are no crowds to go around, and
     // the routes' small detours would change their plans for nothing.
-    double crowd_weight = 0.1;
+    double crowd_weight = 0.04;
     double crowd_density = 1.0;    // robots per square world unit (the world's (2 half_size)^2) from which they act
     double crowd_cell = 0.6;       // the coarse cells' side, world units
     double crowd_detour = 0;       // > 0: a route around crowds longer than this times the straight way is not taken
-    double crowd_time = 25;        // > 0: a route counts in a cell only within about this many steps of
+    double crowd_time = 0;         // > 0: a route counts in a cell only within about this many steps of
                                    // when its robot is due there at cruise (0: wherever it passes)
 };
 
@@ -3607,7 +3602,6 @@ struct PlannerConfig {
         p.traffic.take_turns = false;
         p.traffic.passage_replan = 0;
         p.traffic.crowd_weight = 0;
-        p.traffic.crowd_time = 0;
         p.follower.priority_weight = 1;
         p.follower.lookahead = 0;
         p.follower.replan_error = 0;

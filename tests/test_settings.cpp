@@ -52,11 +52,9 @@ TEST_CASE("settings: the table names every field once, in groups, and its values
 
 TEST_CASE("settings: the presets: tuned is the default; paper is plain DDIM with inpainting and the SPEC 8 follower") {
     const PlannerConfig t = PlannerConfig::tuned(), p = PlannerConfig::paper(), d;
-    CHECK(t.traffic.crowd_weight == 0.1);   // routes around crowds: the tuned planner's, from 1 robot a square unit,
-    CHECK(t.traffic.crowd_time == 25);      // counting a robot only when it is due in a cell
+    CHECK(t.traffic.crowd_weight == 0.04);  // routes around crowds: the tuned planner's, from 1 robot a square unit
     CHECK(t.traffic.crowd_density == 1);
     CHECK(p.traffic.crowd_weight == 0);     // not the paper's
-    CHECK(p.traffic.crowd_time == 0);
     for (const PlannerSetting& s : planner_settings()) CHECK(s.get(t) == s.get(d));
     // The tuned values, written once as member initializers (docs/experiments.md says what each bought).
     CHECK(t.guidance.weight == 0.004f);
