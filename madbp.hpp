@@ -119,9 +119,10 @@
 //        CrowdRoutes, traffic.crowd_weight, crowd_density and crowd_cell: in a team larger than a
 //        scene with at least crowd_density (1) robots a square unit, robots are routed around the
 //        crowds the others' routes make (issue 47; on by default since 2026-12-04).
-//        traffic.crowd_time and crowd_detour (options, off): routes around crowds count a robot in
-//        a cell only about when it is due there, and take no detour longer than crowd_detour times
-//        the straight way. DiffusionPlanner::last_crowd_targets().
+//        traffic.crowd_time, crowd_time_from and crowd_time_weight: in a team of 512 robots or more
+//        routes around crowds count a robot in a cell only about when it is due there.
+//        traffic.crowd_detour (an option, off): no detour longer than this times the straight
+//        way. DiffusionPlanner::last_crowd_targets().
 //        traffic.pocket_order (the expert's default; off for the planner): a robot whose goal
 //        would close off a pocket (a dead end) that another's route enters or leaves waits beside
 //        it until that robot is through. follow_order: a robot going on to a goal in a passage
@@ -3528,8 +3529,16 @@ struct TrafficConfig {
     double crowd_density = 1.0;    // robots per square world unit (the world's (2 half_size)^2) from which they act
     double crowd_cell = 0.6;       // the coarse cells' side, world units
     double crowd_detour = 0;       // > 0: a route around crowds longer than this times the straight way is not taken
-    double crowd_time = 0;         // > 0: a route counts in a cell only within about this many steps of
-                                   // when its robot is due there at cruise (0: wherever it passes)
+    // In a team of crowd_time_from robots or more, a route counts in a cell only within about
+    // crowd_time steps of when its robot is due there at cruise, and a cell costs 1 +
+    // crowd_time_weight per robot due there per its free area. Counted wherever a route passes,
+    // the demand in the middle grows with the world's side, and so do the detours of the long
+    // trips an episode ends with: obstacles 1024 robots 8 of 10 counted wherever, 10 of 10 in
+    // time; at 256 robots the tail is longer in time (docs/experiments.md, "Routes around crowds
+    // in time at 1024 robots").
+    double crowd_time = 25;        // steps (0: routes count wherever they pass, in every team)
+    int crowd_time_from = 512;     // robots
+    double crowd_time_weight = 0.1;
 };
 
 // Everything a plan uses, each default written once, here: who plans with whom, the sampler, its
@@ -3761,8 +3770,12 @@ inline const std::vector<PlannerSetting>& planner_settings() {
          +[](C& c) -> double& { return c.traffic.crowd_cell; }},
         {"traffic.crowd_detour", 0, 100, "routes around crowds: a detour longer than this times the straight way is not taken (0 = any)", nullptr, 0,
          +[](C& c) -> double& { return c.traffic.crowd_detour; }},
-        {"traffic.crowd_time", 0, 1000, "routes around crowds count a robot in a cell only within this many steps of its time there (0 = whenever)", nullptr, 0,
+        {"traffic.crowd_time", 0, 1000, "in a team of traffic.crowd_time_from robots or more, routes around crowds count a robot in a cell only within this many steps of its time there (0 = whenever, in every team)", nullptr, 0,
          +[](C& c) -> double& { return c.traffic.crowd_time; }},
+        {"traffic.crowd_time_from", 1, 1000000, "teams of this many robots or more count routes around crowds in time (traffic.crowd_time)", nullptr, 0,
+         +[](C& c) -> int& { return c.traffic.crowd_time_from; }},
+        {"traffic.crowd_time_weight", 0, 100, "where routes around crowds count in time, a cell costs 1 + this per robot due there", nullptr, 0,
+         +[](C& c) -> double& { return c.traffic.crowd_time_weight; }},
         {"follower.replan_every", 1, 1000, "steps executed per plan (m)", nullptr, 0,
          +[](C& c) -> int& { return c.follower.replan_every; }},
         {"follower.safety_filter", 0, 1, "the SPEC 3.2 safety filter runs after the tracker", nullptr, 0,
@@ -4835,7 +4848,8 @@ inline ExpertTraffic passage_traffic(const TrafficConfig& traffic = expert_traff
 //     nearest it, then for its goal once that is the goal's cell; when the route, as made, strays
 //     less than a cell from the straight way to the goal, for the goal itself (so the route
 //     changes nothing where there is no crowd to go around).
-// With crowd_time W > 0 a route counts in a cell only about when its robot is due there: the
+// In a team of crowd_time_from robots or more (with crowd_time W > 0) a route counts in a cell
+// only about when its robot is due there, at weight crowd_time_weight: the
 // demand is kept per time bin of W steps (kCrowdBins of them, from now), a route's cell adding to
 // the bin of the step its robot reaches it at cruise (ExpertParams::cell a step along the route's
 // points) and the bins either side, and a step of the search into a cell reads the bin of the
@@ -4854,7 +4868,9 @@ public:
     // Where each of the n robots heads (target[i]: goal[i] where its route goes straight there).
     void update(RouteGuide& guide, const WorldMap& map, const TrafficConfig& p, int n, const Vec2* pos, const Vec2* goal,
                 const char* at_goal, const int* ids, long step, std::vector<Vec2>& target) {
-        set_map(guide, map, p);
+        const bool in_time = p.crowd_time > 0 && n >= p.crowd_time_from;
+        const double weight = in_time ? p.crowd_time_weight : p.crowd_weight;
+        set_map(guide, map, p, in_time ? p.crowd_time : 0);
         target.assign(goal, goal + n);
         // Forget robots gone (without allocating: plans in a steady state allocate nothing); then
         // the demand of every remaining route from where its robot is.
@@ -4879,7 +4895,7 @@ public:
             if (stale) {
                 if (index_[i] >= 0) add(r, index_[i], pos[i], -1);
                 if (norm(goal[i] - pos[i]) > kCrowdMinWay * cell_ && open_ground(guide, map, pos[i], goal[i])) {
-                    const double way = route(r, pos[i], goal[i], p.crowd_weight);
+                    const double way = route(r, pos[i], goal[i], weight);
                     if (p.crowd_detour > 0 && way > p.crowd_detour * norm(goal[i] - pos[i]) + cell_) route(r, pos[i], goal[i], 0);
                 }
                 else r.cells.assign(1, cell_of(goal[i]));  // near, or a winding way: its map route, as without crowds
@@ -4906,7 +4922,7 @@ private:
     std::vector<uint8_t> links_;   // per coarse cell: bit d, the step to neighbour d (kDr, kDc) is clear
     std::vector<float> demand_;    // per time bin and coarse cell (bin * side^2 + cell): routes through it
     int bins_ = 1;                 // time bins: 1 (routes count whenever) or kCrowdBins
-    double bin_steps_ = 0;         // steps a time bin spans (crowd_time; 0: one bin for all time)
+    double bin_steps_ = 0;         // steps a time bin spans (crowd_time in time; 0: one bin for all time)
     double step_length_ = ExpertParams{}.cell;  // world units a robot covers a step at cruise
     std::map<int, Route> routes_;  // by robot id
     std::vector<int> index_;       // per robot of this call: its place on its route (-1: none)
@@ -4924,15 +4940,15 @@ private:
     }
     Vec2 centre(int k) const { return {lo_ + (k % side_ + 0.5) * cell_, lo_ + (k / side_ + 0.5) * cell_}; }
 
-    void set_map(RouteGuide& guide, const WorldMap& map, const TrafficConfig& p) {
+    void set_map(RouteGuide& guide, const WorldMap& map, const TrafficConfig& p, double bin_steps) {
         const double h = map.half_size;
         // The cells fit the world, so cell_ is crowd_cell rounded: compare the side, not the cell
         // (comparing cell_ with crowd_cell remade every route every plan where 2h / crowd_cell
         // is not a whole number).
         const int side = std::max(1, (int)std::ceil(2 * h / std::max(p.crowd_cell, 2 * h / kCrowdMaxSide) - 1e-9));
-        if (side == side_ && map == map_ && p.crowd_time == bin_steps_) return;
+        if (side == side_ && map == map_ && bin_steps == bin_steps_) return;
         map_ = map;
-        bin_steps_ = p.crowd_time;
+        bin_steps_ = bin_steps;
         bins_ = bin_steps_ > 0 ? kCrowdBins : 1;
         side_ = side;
         cell_ = 2 * h / side_;

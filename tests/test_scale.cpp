@@ -198,13 +198,34 @@ TEST_CASE("crowds: with crowd_time, a robot goes around only the routes due wher
         std::vector<Vec2> p = pos, g = goal;
         p.push_back({0.0, from_y}), g.push_back({0.0, -4.0});
         TrafficConfig traffic;
-        traffic.crowd_weight = 0.5, traffic.crowd_time = crowd_time;
+        traffic.crowd_weight = traffic.crowd_time_weight = 0.5;
+        traffic.crowd_time = crowd_time, traffic.crowd_time_from = 1;  // in time in any team
         return crowd_targets(p, g, traffic).back();
     };
     const Vec2 south{0.0, -4.0};
     CHECK(!(last_target(4.5, 0) == south));   // routes counted whenever: it goes around the lane
     CHECK(last_target(4.5, 10) == south);     // counted when they are due: the lane is clear by then
     CHECK(!(last_target(1.2, 10) == south));  // due together: it goes around
+}
+
+TEST_CASE("crowds: teams of crowd_time_from robots or more count routes in time; smaller ones wherever they pass") {
+    // The crossing above: counted whenever, the late robot goes around the lane; in time, it
+    // goes straight. The defaults count in time from 512 robots: 25 here count wherever.
+    std::vector<Vec2> pos, goal;
+    for (int k = 0; k < 24; ++k) pos.push_back({-1.0, -0.25 + 0.02 * k}), goal.push_back({4.0, -0.25 + 0.02 * k});
+    pos.push_back({0.0, 4.5}), goal.push_back({0.0, -4.0});
+    TrafficConfig traffic;
+    traffic.crowd_weight = traffic.crowd_time_weight = 0.5;
+    CHECK(traffic.crowd_time > 0);
+    CHECK(traffic.crowd_time_from > 25);
+    const Vec2 whenever = crowd_targets(pos, goal, traffic).back();
+    CHECK(!(whenever == goal.back()));
+    traffic.crowd_time_from = 25;
+    CHECK(crowd_targets(pos, goal, traffic).back() == goal.back());  // 25 robots: in time
+    traffic.crowd_time_from = 26;
+    CHECK(crowd_targets(pos, goal, traffic).back() == whenever);
+    traffic.crowd_time_from = 1, traffic.crowd_time = 0;              // crowd_time 0: wherever, in every team
+    CHECK(crowd_targets(pos, goal, traffic).back() == whenever);
 }
 
 TEST_CASE("crowds: with crowd_detour, a detour longer than that times the straight way is not taken") {

@@ -54,6 +54,9 @@ TEST_CASE("settings: the presets: tuned is the default; paper is plain DDIM with
     const PlannerConfig t = PlannerConfig::tuned(), p = PlannerConfig::paper(), d;
     CHECK(t.traffic.crowd_weight == 0.04);  // routes around crowds: the tuned planner's, from 1 robot a square unit
     CHECK(t.traffic.crowd_density == 1);
+    CHECK(t.traffic.crowd_time_from == 512);  // and routes counted in time from 512 robots
+    CHECK(t.traffic.crowd_time == 25);
+    CHECK(t.traffic.crowd_time_weight == 0.1);
     CHECK(p.traffic.crowd_weight == 0);     // not the paper's
     for (const PlannerSetting& s : planner_settings()) CHECK(s.get(t) == s.get(d));
     // The tuned values, written once as member initializers (docs/experiments.md says what each bought).
