@@ -3533,8 +3533,8 @@ struct TrafficConfig {
     // crowd_time steps of when its robot is due there at cruise, and a cell costs 1 +
     // crowd_time_weight per robot due there per its free area. Counted wherever a route passes,
     // the demand in the middle grows with the world's side, and so do the detours of the long
-    // trips an episode ends with: among obstacles, 1024 robots 8 of 10 counted wherever, 18 of 20
-    // in time, 512 robots in 9 % fewer steps; at 256 robots the two do not separate
+    // trips an episode ends with: among obstacles, 1024 robots 16 of 20 counted wherever, 18 of
+    // 20 in time, 512 robots in 9 % fewer steps; at 256 robots the two do not separate
     // (docs/experiments.md, "Routes in time from 512 robots").
     double crowd_time = 25;        // steps (0: routes count wherever they pass, in every team)
     int crowd_time_from = 512;     // robots
