@@ -403,6 +403,74 @@ TEST_CASE("goal fields: a large world keeps at most kGoalFieldBytes of them") {
     CHECK(bytes + f.goals[0].d.size() * sizeof(float) > MapFields::kGoalFieldBytes);  // no field more fits
 }
 
+TEST_CASE("goal fields: a robot whose window ends at its goal takes none, and needs none") {
+    // Its last waypoint is imposed again after every step (impose_pins), so its goal term moves
+    // nothing: the windows are the same to the bit with its field and without it.
+    const ModelConfig c = tiny_config();
+    MadbpModel model(c, 8);
+    model.set_training(false);
+    NoiseSchedule sched(c.diffusion_steps);
+    const WorldMap map = test_map();
+    SceneBatch s;
+    s.resize(1, 2, c, true);
+    encode_map(s, 0, map, c);
+    s.count[0] = 2;
+    encode_agent(s, 0, 0, {-0.2, -0.3}, {0.1, -0.5}, map, c);  // 0.36 from its goal: pinned
+    encode_agent(s, 1, 1, {0.8, -0.2}, {-0.2, -0.6}, map, c);  // 1.08 from its goal: not pinned
+    SamplerConfig sc;
+    sc.sample_steps = 4;
+    sc.guidance = 0.01f;
+    REQUIRE(end_pinned(s, 0, c, sc.pinned_reach()));
+    REQUIRE(!end_pinned(s, 1, c, sc.pinned_reach()));
+    auto draw = [&](ConflictWorkspace& cw) {
+        Rng rng(11);
+        Mat x, out;
+        std::vector<int> buf;
+        sample_windows(model, sched, s, sc, rng, x, out, buf, &cw);
+        return x;
+    };
+    ConflictWorkspace without, with;
+    without.set_map(map);
+    with.set_map(map);
+    with.fields.add_goals(s, c, sc.cost.radius);  // no pins given: both robots' fields
+    REQUIRE(with.fields.goals.size() == 2);
+    const Mat x_without = draw(without);
+    CHECK(without.fields.goals.size() == 1);  // the sampler made the far robot's field only
+    CHECK(without.fields.find(s.goal(1, c).x, s.goal(1, c).y) != nullptr);
+    CHECK(draw(with) == x_without);
+    sc.goal_inpaint = false;  // no pins: every real goal gets its field
+    ConflictWorkspace unpinned;
+    unpinned.set_map(map);
+    draw(unpinned);
+    CHECK(unpinned.fields.goals.size() == 2);
+}
+
+TEST_CASE("goal fields: robots parked at their goals leave the cache to robots still on their way") {
+    // A crowd whose robots have mostly arrived (512 robots among obstacles near an episode's
+    // end): the parked robots' fields had filled the cache, and robots arriving later kept the
+    // straight-line goal term, in clutter too.
+    const ModelConfig c = tiny_config();
+    MapFields f;
+    f.set_map(WorldMap{});
+    const int cap = f.max_goal_fields(), n = cap + 40;
+    Rng rng(4);
+    SceneBatch s;
+    s.resize(n, 1, c, true);
+    for (int a = 0; a < n; ++a) {
+        const Vec2 goal{rng.uniform(-1.1, 1.1), rng.uniform(-1.1, 1.1)};
+        encode_agent(s, a, 0, a < cap ? goal : goal + Vec2{0.8, 0}, goal, WorldMap{}, c);  // the first cap robots parked
+    }
+    auto held_by_the_last_40 = [&] {
+        int k = 0;
+        for (int a = cap; a < n; ++a) k += f.find(s.goal(a, c).x, s.goal(a, c).y) != nullptr;
+        return k;
+    };
+    f.add_goals(s, c, 0.1);  // without pins, the parked robots come first and take every field
+    CHECK(held_by_the_last_40() == 0);
+    f.add_goals(s, c, 0.1, SamplerConfig{}.pinned_reach());
+    CHECK(held_by_the_last_40() == 40);
+}
+
 TEST_CASE("goal fields: the bucket queue gives a binary heap's Dijkstra to the bit") {
     // The reference: textbook Dijkstra with a binary heap over the same graph (8-connected nodes,
     // a step into a node nearer than `radius` to the map costing kBlockedFactor times its length).
