@@ -129,8 +129,6 @@
 //        follows the robot ahead of it there that goes deeper.
 //        MapFields::kGoalFieldBytes: at most 16 MB of goal fields (max_goal_fields()), so a
 //        whole episode of 256 robots holds ~60 MB, not ~115 (issue 47).
-//        A robot whose window ends pinned at its goal takes no goal field (MapFields::add_goals):
-//        the robots parked at their goals had held every field, those still on their way none.
 //   0.3  PlannerConfig: every planner setting in one struct, its defaults written once.
 //        PlannerConfig::tuned() (the default) and paper() (the paper's planner) presets.
 //        planner_settings(): one table behind validate(), set(), --set and --list-settings.
@@ -2965,21 +2963,16 @@ struct MapFields {
         return nullptr;
     }
     // Makes the goal fields of every active agent of `batch` that has none yet (real goals only:
-    // a route subgoal is in straight view, SceneBatch::goal_final), except agents whose window
-    // ends pinned at the goal (end_pinned within `pinned_reach`; < 0: none): the sampler imposes
-    // that waypoint again after every step, so their goal term moves nothing and a field would
-    // only take a place another robot needs. With max_goal_fields() kept, a new goal takes the
-    // place of a field this call's agents do not use; when all are in use, its agent keeps the
-    // straight-line goal term (window_cost). Clearing the cache when full, as before 2026-12-04,
-    // rebuilt every field every plan once more than kMaxGoalFields robots of a team saw their
-    // goals (512 robots among obstacles: 0.6-1.4 s a plan; docs/speed.md).
-    void add_goals(const SceneBatch& batch, const ModelConfig& c, double radius, float pinned_reach = -1) {
+    // a route subgoal is in straight view, SceneBatch::goal_final). With max_goal_fields() kept, a new
+    // goal takes the place of a field this call's agents do not use; when all are in use, its agent
+    // keeps the straight-line goal term (window_cost). Clearing the cache when full, as before
+    // 2026-12-04, rebuilt every field every plan once more than kMaxGoalFields robots of a team saw
+    // their goals (512 robots among obstacles: 0.6-1.4 s a plan; docs/speed.md).
+    void add_goals(const SceneBatch& batch, const ModelConfig& c, double radius) {
         MADBP_ASSERT(clearance.nodes >= 2);
         ++call_;
         used_.resize(goals.size(), 0);
-        auto wanted = [&](int a) {
-            return batch.agent_mask[a] != 0 && batch.goal_final[a] != 0 && !end_pinned(batch, a, c, pinned_reach);
-        };
+        auto wanted = [&](int a) { return batch.agent_mask[a] != 0 && batch.goal_final[a] != 0; };
         for (int a = 0; a < batch.agents(); ++a) {  // the fields this call uses stay
             if (!wanted(a)) continue;
             const Vec2 g = batch.goal(a, c);
@@ -3276,8 +3269,6 @@ struct SamplerConfig {
     float x0_clip = 1.5f;        // x0_hat clipped to [-x0_clip, x0_clip] (normalised displacements; Diffuser's clip_denoised)
     bool goal_inpaint = true;    // pin the window's last waypoint to the goal when it is within reach
     float goal_reach = 0.55f;    // "within reach": distance to goal in world units at most this (see default_goal_reach)
-    // The reach within which a goal pins the window's end (end_pinned); -1 (none) without goal_inpaint.
-    float pinned_reach() const { return goal_inpaint ? goal_reach : -1.0f; }
     // Conflict-aware sampling (issue 12), off by default: with guidance = 0 and candidates = 1
     // the sampler is the plain DDIM below, bit for bit. Both read the map through a
     // ConflictWorkspace (sample_windows' last argument; DiffusionPlanner keeps one).
@@ -3336,7 +3327,7 @@ inline void impose_pins(const SceneBatch& batch, const ModelConfig& c, const Sam
         if (batch.agent_mask[a] == 0) { w.setZero(); continue; }
         w.col(0).setZero();
         Eigen::Vector2f end;
-        if (end_pinned(batch, a, c, sc.pinned_reach(), &end)) w.col(H - 1).head<2>() = end;  // a fixed-size target: no vector loads past `end`
+        if (sc.goal_inpaint && end_pinned(batch, a, c, sc.goal_reach, &end)) w.col(H - 1).head<2>() = end;  // a fixed-size target: no vector loads past `end`
     }
 }
 
@@ -3428,7 +3419,7 @@ void sample_conflict_aware(Denoiser& model, const NoiseSchedule& schedule, const
     const ModelConfig& c = model.config;
     const int H = c.horizon, B = batch.B, n = batch.n, S = sc.sample_steps, k = sc.candidates;
     const WindowCost& wc = sc.cost;
-    if (wc.geodesic && wc.goal_weight > 0 && !cw.shared_fields) cw.fields.add_goals(batch, c, wc.radius, sc.pinned_reach());  // new goals only
+    if (wc.geodesic && wc.goal_weight > 0 && !cw.shared_fields) cw.fields.add_goals(batch, c, wc.radius);  // new goals only
     const MapFields& fields = cw.map_fields();
     if (k > 1) repeat_scenes(batch, k, cw.batch);
     const SceneBatch& rb = k > 1 ? cw.batch : batch;
@@ -5516,7 +5507,7 @@ private:
         }
         MADBP_ASSERT(!batch_.noise_seed.empty());  // neighbourhood scenes: the only plans of several scenes
         // The goal fields, made once for every chunk (the chunks only read the fields).
-        if (sc.conflict_aware() && sc.cost.geodesic && sc.cost.goal_weight > 0) conflict_.fields.add_goals(batch_, c, sc.cost.radius, sc.pinned_reach());
+        if (sc.conflict_aware() && sc.cost.geodesic && sc.cost.goal_weight > 0) conflict_.fields.add_goals(batch_, c, sc.cost.radius);
         const int threads = sample_threads(B), k = sc.candidates;
         if ((int)workers_.size() < threads) workers_.resize(threads);
         for (int t = 0; t < threads; ++t) {
