@@ -129,6 +129,9 @@
 //        follows the robot ahead of it there that goes deeper.
 //        MapFields::kGoalFieldBytes: at most 16 MB of goal fields (max_goal_fields()), so a
 //        whole episode of 256 robots holds ~60 MB, not ~115 (issue 47).
+//        A plan on several threads also routes the robots near where they head (near fields)
+//        and encodes its scenes (map crops) on them, each thread with a route guide of its own
+//        (ChunkWorker::guide): the same windows, a smaller serial share (issue 47).
 //   0.3  PlannerConfig: every planner setting in one struct, its defaults written once.
 //        PlannerConfig::tuned() (the default) and paper() (the paper's planner) presets.
 //        planner_settings(): one table behind validate(), set(), --set and --list-settings.
@@ -193,6 +196,7 @@
 #include <cstdio>
 #include <cstdlib>
 #include <cstring>
+#include <exception>
 #include <fcntl.h>
 #include <limits>
 #include <climits>
@@ -267,6 +271,24 @@ inline void parallel_for(int n, int threads, const F& fn, bool dynamic = false) 
     }
 #endif
     for (int i = 0; i < n; ++i) fn(i, 0);
+}
+
+// parallel_for of an fn that may throw (an exception must not leave an OpenMP region): a thread
+// that failed runs none of its next items, and the first thread's failure is rethrown when all
+// are done. `failed`: scratch, one slot a thread.
+template <class F>
+inline void parallel_for_rethrow(int n, int threads, std::vector<std::exception_ptr>& failed, const F& fn, bool dynamic = false) {
+    failed.assign(std::max(1, threads), nullptr);
+    parallel_for(n, threads, [&](int i, int t) {
+        if (failed[t]) return;
+        try {
+            fn(i, t);
+        } catch (...) {
+            failed[t] = std::current_exception();
+        }
+    }, dynamic);
+    for (const std::exception_ptr& e : failed)
+        if (e) std::rethrow_exception(e);
 }
 
 // Column range [c0, c1) of n columns for thread t of nt, in multiples of 8 columns.
@@ -5292,6 +5314,7 @@ private:
     // window_col_[i] of x_ (-1: none).
     std::vector<int> scene_robots_, scene_seed_, window_col_;
     std::vector<char> in_scene_;  // per robot: in some scene of the plan (its route_ is set)
+    std::vector<int> near_robots_;  // route_robots: the robots routed on near fields
     // One thread's share of a plan's sampling (sample_scenes): a chunk of scenes and its workspace.
     struct ChunkWorker {
         std::unique_ptr<MadbpModel> copy;  // thread 0 uses the planner's model; the others a copy, its parameters synced every plan
@@ -5300,6 +5323,7 @@ private:
         std::vector<int> steps;
         ConflictWorkspace cw;  // reads the planner's map fields (shared_fields)
         Rng rng;
+        std::unique_ptr<RouteGuide> guide;  // route_robots' near routes (thread 0 uses the planner's)
     };
     std::vector<ChunkWorker> workers_;
     std::vector<std::exception_ptr> failed_;  // per thread: what stopped its chunks
@@ -5363,19 +5387,7 @@ private:
             passages_.params = settings.traffic;
             passages_.arbitrate(guide_, map, n, pos_.data(), goal_.data(), at_goal_.data(), waiting_, wait_point_, ids_.data(), in_scene_.data());
         }
-        route_.resize(n);
-        // A waiting robot is routed to its waiting point like to a goal: one that makes way may
-        // have the length of a corridor to go.
-        // A robot routed around a crowd (traffic.crowd_weight) heads for its route's next point as
-        // for a subgoal: that far along the way there, never to stop at it.
-        for (int i = 0; i < n; ++i) {
-            if (!in_scene_[i]) continue;
-            const bool around = !crowd_target_.empty() && waiting_[i] == PassageControl::kGoOn && !(crowd_target_[i] == goal_[i]);
-            const Vec2 head = waiting_[i] == PassageControl::kWait ? wait_point_[i] : around ? crowd_target_[i] : goal_[i];
-            route_[i] = route_goal(guide_, c, map, pos_[i], head, waiting_[i] == PassageControl::kGoAround ? passages_.closed_to(i) : ClosedCells{});
-            if (around && norm(route_[i].goal - pos_[i]) > 1e-9)
-                route_[i] = subgoal_towards(pos_[i], route_[i].goal, c.subgoal_distance > 0 ? c.subgoal_distance : kRouteLookahead);
-        }
+        route_robots(map, n, sample_threads(scenes));
         // Each neighbourhood scene draws its own noise, seeded by the plan and its seed robot's id.
         const uint64_t plan_seed = local ? rng_.next_u64() : 0;
         if (local) batch_.noise_seed.resize(scenes);
@@ -5390,10 +5402,21 @@ private:
             while (m < K && robots[m] >= 0) ++m;
             if (local) batch_.noise_seed[b] = plan_seed ^ (0x9E3779B97F4A7C15ull * (uint64_t)(ids_[scene_seed_[b]] + 1));
             batch_.origin[b] = scene_origin(c, m, [&](int k) { return pos_[robots[k]]; });
+            for (int k = 0; k < m && warm; ++k)
+                if (!warm_from_last(robots[k], b * K + k)) {
+                    if (line_start) line_window(robots[k], b * K + k);
+                    else warm = false;
+                }
+            batch_.count[b] = m;
+            set_priorities(b, m, robots, /*crowd*/ K < n);
+        }
+        // The scenes' maps and robots, on the sampling threads (each scene writes its own columns).
+        detail::parallel_for_rethrow(scenes, sample_threads(scenes), failed_, [&](int b, int) {
+            const int* robots = scene_robots_.data() + (size_t)b * K;
             if (!shared) encode_map(batch_, b, map, c);
             for (int k = 0; k < K; ++k) {
                 const int a = b * K + k;
-                if (k >= m) {  // an empty slot
+                if (k >= batch_.count[b]) {  // an empty slot
                     batch_.agent_mask[a] = 0;
                     batch_.slot[a] = k;
                     batch_.goal_final[a] = 1;
@@ -5401,15 +5424,9 @@ private:
                     continue;
                 }
                 const int i = robots[k];
-                if (warm && !warm_from_last(i, a)) {
-                    if (line_start) line_window(i, a);
-                    else warm = false;
-                }
                 encode_agent(batch_, a, /*slot*/ k, pos_[i], route_[i].goal, map, c, route_[i].final);
             }
-            batch_.count[b] = m;
-            set_priorities(b, m, robots, /*crowd*/ K < n);
-        }
+        });
         if (first_seen_.size() > 2 * (size_t)n + 64)  // robots gone: keep the keys of this plan's (bounded memory)
             for (auto it = first_seen_.begin(); it != first_seen_.end();)
                 it = std::find(ids_.begin(), ids_.end(), it->first) == ids_.end() ? first_seen_.erase(it) : std::next(it);
@@ -5488,6 +5505,44 @@ private:
         }
     }
 
+    // Each scene robot's route_goal (route_), on `threads` threads at most. A waiting robot is
+    // routed to its waiting point like to a goal: one that makes way may have the length of a
+    // corridor to go. A robot routed around a crowd (traffic.crowd_weight) heads for its route's
+    // next point as for a subgoal: that far along the way there, never to stop at it.
+    // A robot within near_reach of where it heads walks a near field, which reads no cached field
+    // (RouteGuide::subgoal): those are routed on the threads, each with a guide of its own
+    // (thread 0 the planner's; ChunkWorker::guide), which walks the same routes. The others walk
+    // the planner's guide's cached fields, in turn.
+    void route_robots(const WorldMap& map, int n, int threads) {
+        const ModelConfig& c = model_.config;
+        route_.resize(n);
+        near_robots_.clear();
+        auto head_of = [&](int i) {
+            if (waiting_[i] == PassageControl::kWait) return wait_point_[i];
+            return around_crowd(i) ? crowd_target_[i] : goal_[i];
+        };
+        auto route = [&](RouteGuide& guide, int i) {
+            route_[i] = route_goal(guide, c, map, pos_[i], head_of(i), waiting_[i] == PassageControl::kGoAround ? passages_.closed_to(i) : ClosedCells{});
+            if (around_crowd(i) && norm(route_[i].goal - pos_[i]) > 1e-9)
+                route_[i] = subgoal_towards(pos_[i], route_[i].goal, c.subgoal_distance > 0 ? c.subgoal_distance : kRouteLookahead);
+        };
+        for (int i = 0; i < n; ++i) {
+            if (!in_scene_[i]) continue;
+            if (threads > 1 && norm(head_of(i) - pos_[i]) <= guide_.near_reach) near_robots_.push_back(i);
+            else route(guide_, i);
+        }
+        if (near_robots_.empty()) return;
+        if ((int)workers_.size() < threads) workers_.resize(threads);
+        for (int t = 1; t < threads; ++t)
+            if (!workers_[t].guide) workers_[t].guide = std::make_unique<RouteGuide>(guide_.settings_only());
+        detail::parallel_for_rethrow((int)near_robots_.size(), threads, failed_, [&](int j, int t) {
+            route(t == 0 ? guide_ : *workers_[t].guide, near_robots_[j]);
+        }, /*dynamic: a robot's route is the same on any thread*/ true);
+    }
+    bool around_crowd(int i) const {
+        return !crowd_target_.empty() && waiting_[i] == PassageControl::kGoOn && !(crowd_target_[i] == goal_[i]);
+    }
+
     // Threads the sampling of `scenes` scenes uses: one per chunk, at most set_num_threads'.
     int sample_threads(int scenes) const {
         const int chunk = settings.workspace.chunk_scenes;
@@ -5523,28 +5578,19 @@ private:
         x_.resize(2, cols * B);
         conflict_.cost.resize((size_t)B * k);
         conflict_.best.resize(B);
-        std::vector<std::exception_ptr>& failed = failed_;
-        failed.assign(threads, nullptr);
-        detail::parallel_for(chunks, threads, [&](int i, int t) {
-            if (failed[t]) return;
-            try {
-                ChunkWorker& w = workers_[t];
-                MadbpModel& model = t == 0 ? model_ : *w.copy;
-                const int first = i * chunk, count = std::min(chunk, B - first);
-                slice_scenes(batch_, first, count, w.batch);
-                if (warm) w.warm = warm_.middleCols(first * cols, count * cols);
-                sample_windows(model, schedule_, w.batch, sc, w.rng, w.x, w.out, w.steps, &w.cw, warm ? &w.warm : nullptr);
-                x_.middleCols(first * cols, count * cols) = w.x;
-                if (sc.conflict_aware()) {
-                    std::copy(w.cw.cost.begin(), w.cw.cost.end(), conflict_.cost.begin() + (size_t)first * k);
-                    std::copy(w.cw.best.begin(), w.cw.best.end(), conflict_.best.begin() + first);
-                }
-            } catch (...) {
-                failed[t] = std::current_exception();
+        detail::parallel_for_rethrow(chunks, threads, failed_, [&](int i, int t) {
+            ChunkWorker& w = workers_[t];
+            MadbpModel& model = t == 0 ? model_ : *w.copy;
+            const int first = i * chunk, count = std::min(chunk, B - first);
+            slice_scenes(batch_, first, count, w.batch);
+            if (warm) w.warm = warm_.middleCols(first * cols, count * cols);
+            sample_windows(model, schedule_, w.batch, sc, w.rng, w.x, w.out, w.steps, &w.cw, warm ? &w.warm : nullptr);
+            x_.middleCols(first * cols, count * cols) = w.x;
+            if (sc.conflict_aware()) {
+                std::copy(w.cw.cost.begin(), w.cw.cost.end(), conflict_.cost.begin() + (size_t)first * k);
+                std::copy(w.cw.best.begin(), w.cw.best.end(), conflict_.best.begin() + first);
             }
         }, /*dynamic: a chunk's windows are the same on any thread*/ true);
-        for (const std::exception_ptr& e : failed)
-            if (e) std::rethrow_exception(e);
     }
 
     // Agent a's columns of warm_ from robot i's last window (detail::warm_window); false without one.

@@ -2914,6 +2914,14 @@ public:
     double near_reach = 2.0;
 
     RouteClearance route() const { return {min_clear, clear, narrow_cost}; }
+    // A guide with these settings (every public field above) and nothing made yet: another
+    // thread's guide that walks the same routes.
+    RouteGuide settings_only() const {
+        RouteGuide g;
+        g.cell = cell, g.clear = clear, g.min_clear = min_clear, g.narrow_cost = narrow_cost;
+        g.view_clear = view_clear, g.band = band, g.near_reach = near_reach;
+        return g;
+    }
 
     // The subgoal from p toward goal on `map`, at most `distance` (> 0) world units from p.
     RouteGoal subgoal(const WorldMap& map, Vec2 p, Vec2 goal, double distance, ClosedCells closed = {}) {

@@ -19,9 +19,13 @@ struct ThreadCountGuard {
 };
 
 // Two plans (a first one and a warm one 4 steps on) of a 24-robot world with `threads` threads.
-std::vector<Plan> plans_with(int threads, int chunk_scenes, int cover) {
+// `subgoals`: the model heads for route subgoals (subgoal_distance 0.6), which robots within
+// RouteGuide::near_reach of their goals walk on the threads, each with its own guide.
+std::vector<Plan> plans_with(int threads, int chunk_scenes, int cover, bool subgoals = false) {
     set_num_threads(threads);
-    DiffusionPlanner planner(MadbpModel(tiny_config(), 3), 17);  // K = n_max = 6; guidance and goal fields on
+    ModelConfig c = tiny_config();
+    if (subgoals) c.subgoal_distance = 0.6f;
+    DiffusionPlanner planner(MadbpModel(c, 3), 17);  // K = n_max = 6; guidance and goal fields on
     planner.settings.workspace.chunk_scenes = chunk_scenes;
     planner.settings.neighbourhood.cover = cover;
     World w = make_random_world("obstacles", 24, 5, 2.4);
@@ -35,19 +39,21 @@ std::vector<Plan> plans_with(int threads, int chunk_scenes, int cover) {
 TEST_CASE("scale: a plan on 2 threads is the plan on one, bit for bit") {
     ThreadCountGuard restore;
     for (int chunk : {2, 1024})      // several chunks (one per thread at a time), and the whole batch as one
-        for (int cover : {3, 0}) {   // scenes that cover the team, and a scene per robot
-            CAPTURE(chunk);
-            CAPTURE(cover);
-            const std::vector<Plan> one = plans_with(1, chunk, cover), two = plans_with(2, chunk, cover);
-            for (size_t p = 0; p < one.size(); ++p) {
-                REQUIRE(one[p].ids == two[p].ids);
-                bool same = true;
-                for (size_t i = 0; i < one[p].waypoints.size(); ++i)
-                    for (size_t t = 0; t < one[p].waypoints[i].size(); ++t)
-                        same = same && one[p].waypoints[i][t].x == two[p].waypoints[i][t].x && one[p].waypoints[i][t].y == two[p].waypoints[i][t].y;
-                CHECK(same);
+        for (int cover : {3, 0})     // scenes that cover the team, and a scene per robot
+            for (bool subgoals : {false, true}) {  // heading for goals, or for route subgoals
+                CAPTURE(chunk);
+                CAPTURE(cover);
+                CAPTURE(subgoals);
+                const std::vector<Plan> one = plans_with(1, chunk, cover, subgoals), two = plans_with(2, chunk, cover, subgoals);
+                for (size_t p = 0; p < one.size(); ++p) {
+                    REQUIRE(one[p].ids == two[p].ids);
+                    bool same = true;
+                    for (size_t i = 0; i < one[p].waypoints.size(); ++i)
+                        for (size_t t = 0; t < one[p].waypoints[i].size(); ++t)
+                            same = same && one[p].waypoints[i][t].x == two[p].waypoints[i][t].x && one[p].waypoints[i][t].y == two[p].waypoints[i][t].y;
+                    CHECK(same);
+                }
             }
-        }
     // The chunk size is arithmetic, not only scheduling: the windows stay close across sizes.
     const std::vector<Plan> small = plans_with(1, 2, 3), whole = plans_with(1, 1024, 3);
     double gap = 0;
