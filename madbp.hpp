@@ -131,7 +131,8 @@
 //        whole episode of 256 robots holds ~60 MB, not ~115 (issue 47).
 //        A plan on several threads also routes the robots near where they head (near fields)
 //        and encodes its scenes (map crops) on them, each thread with a route guide of its own
-//        (ChunkWorker::guide): the same windows, a smaller serial share (issue 47).
+//        (ChunkWorker::guide), and a first plan makes its route fields several at once there
+//        (RouteGuide::expect): the same windows, a smaller serial share (issue 47).
 //   0.3  PlannerConfig: every planner setting in one struct, its defaults written once.
 //        PlannerConfig::tuned() (the default) and paper() (the paper's planner) presets.
 //        planner_settings(): one table behind validate(), set(), --set and --list-settings.
@@ -198,6 +199,7 @@
 #include <cstring>
 #include <exception>
 #include <fcntl.h>
+#include <functional>
 #include <limits>
 #include <climits>
 #include <map>
@@ -290,6 +292,14 @@ inline void parallel_for_rethrow(int n, int threads, std::vector<std::exception_
     for (const std::exception_ptr& e : failed)
         if (e) std::rethrow_exception(e);
 }
+
+// RouteGuide::run_ahead on set_num_threads' threads, and the fields a batch makes ahead: two a
+// thread (one thread: none ahead).
+inline void run_on_threads(int count, const std::function<void(int)>& fn) {
+    std::vector<std::exception_ptr> failed;
+    parallel_for_rethrow(count, std::min(count, max_threads()), failed, [&](int j, int) { fn(j); }, /*dynamic*/ true);
+}
+inline int fields_ahead_batch() { return max_threads() > 1 ? 2 * max_threads() : 1; }
 
 // Column range [c0, c1) of n columns for thread t of nt, in multiples of 8 columns.
 inline void thread_columns(int n, int t, int nt, int& c0, int& c1) {
@@ -4910,13 +4920,23 @@ public:
             index_[i] = progress(r, pos[i]);
             if (index_[i] >= 0) add(r, index_[i], pos[i], +1);
         }
+        // The routes made again (stale_), and the goals of those that walk the map's route
+        // (open_ground), whose fields the guide may make ahead (RouteGuide::expect).
+        stale_.assign(n, 0);
+        walk_goals_.clear();
+        for (int i = 0; i < n; ++i) {
+            if (at_goal[i]) continue;
+            const Route& r = routes_[ids[i]];
+            stale_[i] = index_[i] < 0 || !(r.goal == goal[i]) || step < r.made || step - r.made >= kCrowdReroute;
+            if (stale_[i] && walks(pos[i], goal[i])) walk_goals_.push_back(goal[i]);
+        }
+        guide.expect(map, walk_goals_, detail::fields_ahead_batch());
         for (int i = 0; i < n; ++i) {
             if (at_goal[i]) continue;
             Route& r = routes_[ids[i]];
-            const bool stale = index_[i] < 0 || !(r.goal == goal[i]) || step < r.made || step - r.made >= kCrowdReroute;
-            if (stale) {
+            if (stale_[i]) {
                 if (index_[i] >= 0) add(r, index_[i], pos[i], -1);
-                if (norm(goal[i] - pos[i]) > kCrowdMinWay * cell_ && open_ground(guide, map, pos[i], goal[i])) {
+                if (walks(pos[i], goal[i]) && open_ground(guide, map, pos[i], goal[i])) {
                     const double way = route(r, pos[i], goal[i], weight);
                     if (p.crowd_detour > 0 && way > p.crowd_detour * norm(goal[i] - pos[i]) + cell_) route(r, pos[i], goal[i], 0);
                 }
@@ -4927,6 +4947,7 @@ public:
             }
             if (!r.straight && index_[i] + kCrowdAhead < (int)r.cells.size() - 1) target[i] = point_[r.cells[index_[i] + kCrowdAhead]];
         }
+        guide.expect_none();
     }
 
 private:
@@ -4948,6 +4969,8 @@ private:
     double step_length_ = ExpertParams{}.cell;  // world units a robot covers a step at cruise
     std::map<int, Route> routes_;  // by robot id
     std::vector<int> index_;       // per robot of this call: its place on its route (-1: none)
+    std::vector<char> stale_;      // per robot of this call: its route is made again
+    std::vector<Vec2> walk_goals_;  // the goals of the stale routes that walk the map's route, in order
     std::vector<int> present_;     // this call's ids, sorted
     std::vector<double> cost_;     // Dijkstra's scratch: costs, way lengths, the cell each came from, the heap
     std::vector<double> way_;
@@ -4955,6 +4978,9 @@ private:
     std::vector<std::pair<double, int>> heap_;
     static constexpr int kDr[8] = {-1, -1, -1, 0, 0, 1, 1, 1}, kDc[8] = {-1, 0, 1, -1, 1, -1, 0, 1};
 
+    // A route from a to goal is made on the coarse cells only when the goal is this far: else the
+    // map's route is kept (no walk on the guide's fields).
+    bool walks(Vec2 a, Vec2 goal) const { return norm(goal - a) > kCrowdMinWay * cell_; }
     int cell_of(Vec2 q) const {
         const int col = std::clamp((int)std::floor((q.x - lo_) / cell_), 0, side_ - 1);
         const int row = std::clamp((int)std::floor((q.y - lo_) / cell_), 0, side_ - 1);
@@ -5158,6 +5184,7 @@ public:
     explicit DiffusionPlanner(MadbpModel model, uint64_t seed = 0, PlannerConfig planner_settings = PlannerConfig::tuned())
         : settings(std::move(planner_settings)), model_(std::move(model)), schedule_(model_.config.diffusion_steps), rng_(seed) {
         model_.set_training(false);
+        guide_.run_ahead = detail::run_on_threads;  // a first plan's fields, on the threads
     }
     const ModelConfig& config() const { return model_.config; }
     MadbpModel& model() { return model_; }
@@ -5314,7 +5341,8 @@ private:
     // window_col_[i] of x_ (-1: none).
     std::vector<int> scene_robots_, scene_seed_, window_col_;
     std::vector<char> in_scene_;  // per robot: in some scene of the plan (its route_ is set)
-    std::vector<int> near_robots_;  // route_robots: the robots routed on near fields
+    std::vector<int> near_robots_, far_robots_;  // route_robots: the robots routed on near fields, and the others
+    std::vector<Vec2> walk_goals_;                // route_robots: the goals whose fields may be made ahead
     // One thread's share of a plan's sampling (sample_scenes): a chunk of scenes and its workspace.
     struct ChunkWorker {
         std::unique_ptr<MadbpModel> copy;  // thread 0 uses the planner's model; the others a copy, its parameters synced every plan
@@ -5526,11 +5554,24 @@ private:
             if (around_crowd(i) && norm(route_[i].goal - pos_[i]) > 1e-9)
                 route_[i] = subgoal_towards(pos_[i], route_[i].goal, c.subgoal_distance > 0 ? c.subgoal_distance : kRouteLookahead);
         };
+        // The robots routed on the planner's guide, and the goals of those whose walks may make
+        // fields (route subgoals, no cells closed, the straight way not clear on the grid), which
+        // the guide may make ahead (RouteGuide::expect).
+        far_robots_.clear();
+        walk_goals_.clear();
         for (int i = 0; i < n; ++i) {
             if (!in_scene_[i]) continue;
-            if (threads > 1 && norm(head_of(i) - pos_[i]) <= guide_.near_reach) near_robots_.push_back(i);
-            else route(guide_, i);
+            if (threads > 1 && norm(head_of(i) - pos_[i]) <= guide_.near_reach) {
+                near_robots_.push_back(i);
+                continue;
+            }
+            far_robots_.push_back(i);
+            if (c.subgoal_distance > 0 && waiting_[i] != PassageControl::kGoAround && !guide_.straight(map, pos_[i], head_of(i)))
+                walk_goals_.push_back(head_of(i));
         }
+        guide_.expect(map, walk_goals_, detail::fields_ahead_batch());
+        for (int i : far_robots_) route(guide_, i);
+        guide_.expect_none();
         if (near_robots_.empty()) return;
         if ((int)workers_.size() < threads) workers_.resize(threads);
         for (int t = 1; t < threads; ++t)

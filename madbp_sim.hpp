@@ -46,6 +46,8 @@
 //        in an order drawn afresh every stall_steps (deadlocks at doorways; 0: fixed priorities).
 //        RouteGuide::near_reach (2.0): a subgoal toward a goal that near walks a wavefront made
 //        only as far as the walk reads, not cached (same subgoals; routes around crowds).
+//        RouteGuide::run_ahead, expect(), expect_none(): fields about to be made are made several
+//        at once (the planner's threads), the same fields; RouteGuide::settings_only().
 //   0.3  PassageControl and its parameters move to madbp.hpp (the planner's traffic conventions).
 //        ClearanceGrid moves to Section 2; ReachGrid is gone (detail::all_reachable on its layout).
 //        movingai_scene / load_movingai_scene: MovingAI MAPF benchmark maps and scenarios as scenes.
@@ -3014,13 +3016,35 @@ public:
         });
     }
     // Bytes held: the grid and the cached wavefronts (capacities), <= grid + kFieldCacheBytes
-    // (one field more while it is being made).
+    // (one field more while it is being made; with expect(), batch - 1 whole wavefronts more).
     size_t workspace_bytes() const {
         size_t bytes = grid_.clear.capacity() * sizeof(float);
         for (const auto& f : fields_) bytes += f.second.steps.bytes();
+        for (const auto& w : waiting_) bytes += w.second.capacity() * sizeof(int);
         return bytes + near_steps_.capacity() * sizeof(int);
     }
     size_t fields_cached() const { return fields_.size(); }
+
+    // Fields made ahead, several at once (the planner's threads, issue 47). `run_ahead(count, fn)`
+    // runs fn(j) for every j in [0, count), in any order or at once (unset: fields are made one at
+    // a time). expect() lists, in order, the goals of the walks about to make fields (keeping out
+    // of no cells). A walk that must make an expected goal's field makes its wavefront together
+    // with those of the next `batch` - 1 expected goals whose fields are not cached, in one
+    // run_ahead; those wait, at most batch - 1 wavefronts of 4 bytes a cell, until their walks ask
+    // or expect_none() drops them. Fields, routes and the cache are those made one at a time: a
+    // wavefront depends on the grid and its goal only.
+    std::function<void(int count, const std::function<void(int)>& fn)> run_ahead;
+    void expect(const WorldMap& map, const std::vector<Vec2>& goals, int batch) {
+        set_map(map);
+        expect_none();
+        for (Vec2 g : goals) expected_.push_back(grid_.index(g));
+        batch_ = batch;
+    }
+    void expect_none() {
+        expected_.clear();
+        waiting_.clear();
+        next_expected_ = 0;
+    }
 
 private:
     ClearanceGrid grid_;
@@ -3036,6 +3060,10 @@ private:
     WorldMap near_;             // visible()'s obstacles near its segment
     std::vector<int> near_steps_, near_touched_;  // near_field's wavefront (-1 where untouched) and the cells it set
     std::vector<std::vector<int>> near_ring_;     // its bucket queue
+    std::vector<int> expected_;                   // expect(): goal cells, in the order walks ask
+    size_t next_expected_ = 0;                    // the first not yet made
+    int batch_ = 1;
+    std::map<int, std::vector<int>> waiting_;     // goal cell -> wavefront made ahead
 
     void set_map(const WorldMap& map) {
         if (grid_.n > 0 && map == map_) return;
@@ -3048,6 +3076,7 @@ private:
         field_bytes_ = 0;
         near_steps_.clear();
         near_touched_.clear();
+        expect_none();
     }
     // The wavefront of goal_cell (wavefront()'s costs, keeping out of `closed`) made only until a
     // walk from cell `from` reads nothing else: it stops one step's cost (1 + narrow_cost) past
@@ -3083,7 +3112,7 @@ private:
             it = fields_.end();
         }
         if (it == fields_.end()) {
-            const std::vector<int> steps = wavefront(grid_, goal_cell, route(), closed);
+            const std::vector<int> steps = closed.any() ? wavefront(grid_, goal_cell, route(), closed) : wavefront_ahead(goal_cell);
             std::vector<int> cells;
             if (!whole) cells.assign(1, from), append_walk(steps, from, goal, steps.size() + 1, cells);
             RouteField made(steps, grid_.n, whole ? nullptr : &cells, band);
@@ -3098,6 +3127,28 @@ private:
         }
         it->second.used = ++clock_;
         return it->second.steps;
+    }
+    // goal_cell's wavefront (no cells closed): made ahead, or made now, with the next expected
+    // ones when goal_cell is expected (expect()).
+    std::vector<int> wavefront_ahead(int goal_cell) {
+        auto w = waiting_.find(goal_cell);
+        if (w != waiting_.end()) {
+            std::vector<int> steps = std::move(w->second);
+            waiting_.erase(w);
+            return steps;
+        }
+        size_t j = std::find(expected_.begin() + next_expected_, expected_.end(), goal_cell) - expected_.begin();
+        if (!run_ahead || batch_ <= 1 || j == expected_.size()) return wavefront(grid_, goal_cell, route(), {});
+        std::vector<int> cells{goal_cell};
+        for (++j; j < expected_.size() && (int)cells.size() < batch_; ++j) {
+            const int k = expected_[j];
+            if (!fields_.count({k, 0, band == 0}) && !waiting_.count(k) && std::find(cells.begin(), cells.end(), k) == cells.end()) cells.push_back(k);
+        }
+        next_expected_ = j;
+        std::vector<std::vector<int>> made(cells.size());
+        run_ahead((int)cells.size(), [&](int b) { made[b] = wavefront(grid_, cells[b], route(), {}); });
+        for (size_t b = 1; b < cells.size(); ++b) waiting_[cells[b]] = std::move(made[b]);
+        return std::move(made[0]);
     }
     // walk(field) on goal's field for a walk from cell `from`. When the walk read a cell its band
     // field does not hold, the band is made again around the route from `from` (it then holds

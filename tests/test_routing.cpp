@@ -272,6 +272,50 @@ TEST_CASE("routing: band fields give the routes whole fields give, in a fraction
     CHECK(banded.workspace_bytes() < whole.workspace_bytes() / 2);
 }
 
+TEST_CASE("routing: fields made ahead, several at once, are the fields made one at a time") {
+    // RouteGuide::expect lists the goals of the walks about to make fields; run_ahead makes the
+    // wavefronts of a batch of them at once (here in reverse order, as threads may finish), and
+    // they wait until their walks ask. Every walk must read what a guide making its fields one at
+    // a time reads, both must cache the same fields, and the batches must have been made ahead.
+    const double half = 10;
+    const WorldMap map = warehouse_map(half);
+    RouteGuide ahead, alone;
+    ahead.near_reach = alone.near_reach = 0;  // cached fields only
+    int runs = 0, made_ahead = 0;
+    ahead.run_ahead = [&](int count, const std::function<void(int)>& fn) {
+        ++runs;
+        made_ahead += count - 1;
+        for (int j = count - 1; j >= 0; --j) fn(j);
+    };
+    Rng rng(12);
+    std::vector<Vec2> starts, goals;
+    for (int robot = 0; robot < 24; ++robot) starts.push_back(aisle_point(half, rng)), goals.push_back(aisle_point(half, rng));
+    std::vector<Vec2> expected = goals;
+    expected.insert(expected.begin() + 5, goals[9]);  // a goal listed twice
+    expected.push_back(aisle_point(half, rng));       // a goal no walk asks for: dropped by expect_none
+    ahead.expect(map, expected, 4);
+    int walked = 0;
+    for (int robot = 0; robot < 24; ++robot) {
+        const RouteGoal a = ahead.subgoal(map, starts[robot], goals[robot], 0.8), b = alone.subgoal(map, starts[robot], goals[robot], 0.8);
+        CHECK(a.goal.x == b.goal.x);
+        CHECK(a.goal.y == b.goal.y);
+        CHECK(a.final == b.final);
+        CHECK(ahead.route_steps(map, starts[robot], goals[robot]) == alone.route_steps(map, starts[robot], goals[robot]));
+        walked += !ahead.straight(map, starts[robot], goals[robot]);
+    }
+    ahead.expect_none();
+    CHECK(walked > 12);
+    CHECK(runs >= 4);
+    CHECK(made_ahead >= 12);
+    CHECK(ahead.fields_cached() == alone.fields_cached());
+    CHECK(ahead.workspace_bytes() == alone.workspace_bytes());  // nothing left waiting
+    // Without run_ahead the guide makes every field itself, expected or not.
+    RouteGuide unset;
+    unset.near_reach = 0;
+    unset.expect(map, goals, 4);
+    for (int robot = 0; robot < 24; ++robot) CHECK(unset.route_steps(map, starts[robot], goals[robot]) == alone.route_steps(map, starts[robot], goals[robot]));
+}
+
 TEST_CASE("routing: obstacles_near answers a clearance threshold as the whole map does, and crops read it") {
     // Random discs and boxes over a large world; for points in a rectangle, the clearance is
     // below t (<= margin) on the near obstacles exactly when it is on the whole map.

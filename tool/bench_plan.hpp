@@ -97,19 +97,19 @@ inline int bench_plan(Args& a) {
                     "new_ms: a first plan of a new world on the same map (new goals: their goal fields are made);\n"
                     "expert: the guided expert's ms per plan; GFLOP/s: of a first plan;\n"
                     "ms/robot: ms/plan per robot; growth: ms/plan grows as n^growth from the row above (1 = linear in robots);\n"
-                    "ms_%dt: a first plan on %d threads, x%dt: its speed-up, measured in the same run;\n"
+                    "ms_%dt: a first plan on %d threads, x%dt: its speed-up, measured in the same run; new_%dt: new_ms on %d threads;\n"
                     "%s"
-                    "%4s %6s %10s %10s %10s %10s %10s %8s %9s %6s %9s %6s %10s %11s\n",
+                    "%4s %6s %10s %10s %10s %10s %10s %8s %9s %6s %9s %6s %10s %10s %11s\n",
                     model_path.c_str(), S, sc.guidance, sc.keep_right, sc.candidates,
                     madbp::kSmallPlanWindows, choice.settings.sampler.small_plan_candidates, sc.warm_start, choice.settings.sampler.line_start ? 1 : 0, config.channels[0], config.dim * config.kernel, config.dim * config.kernel, config.horizon * 8, gemm,
                     map.c_str(), half_sizes.given > 0 ? ("half-size " + madbp::number_text(half_sizes.given)).c_str()
                                          : "half-size at constant density (1.2 up to 8 robots, 3.4 at 64, 13.6 at 1024)",
-                    threads, threads, threads,
+                    threads, threads, threads, threads, threads,
                     episode_steps > 0 ? ("episode_ms, episode_max: the mean and the longest plan in the first " + std::to_string(episode_steps) +
                                          " steps of an episode from the same world, as eval plans them (--episode-steps)\n").c_str() : "",
                     "n",
                     "scenes", "ms/plan", "warm_ms", "new_ms", "expert_ms", "GFLOP/s", "of GEMM", "ms/robot", "growth",
-                    ("ms_" + std::to_string(threads) + "t").c_str(), ("x" + std::to_string(threads) + "t").c_str(), "episode_ms", "episode_max");
+                    ("ms_" + std::to_string(threads) + "t").c_str(), ("x" + std::to_string(threads) + "t").c_str(), ("new_" + std::to_string(threads) + "t").c_str(), "episode_ms", "episode_max");
     double robot_ms = 0, robot_warm_ms = 0;
     double last_ms = 0;  // the row above: the growth exponent
     long last_n = 0;
@@ -129,7 +129,7 @@ inline int bench_plan(Args& a) {
         // expert's run is a unit, then each episode step.
         madbp::ProgressFn progress = progress_line("bench --plan n=" + std::to_string(n) + " plans");
         long done = 0;
-        auto tick = [&](const char* note) { if (progress) progress(++done, 3 + 3L * plans + 1 + episode_steps, note); };
+        auto tick = [&](const char* note) { if (progress) progress(++done, 3 + 4L * plans + 1 + episode_steps, note); };
         for (int i = 0; i < 3; ++i) planner.plan_into(world, plan), tick("warm-up");  // warm-up: workspaces take their sizes
         auto t0 = std::chrono::steady_clock::now();
         for (int i = 0; i < plans; ++i) planner.plan_into(world, plan), tick("first plans");
@@ -162,8 +162,20 @@ inline int bench_plan(Args& a) {
             auto f0 = std::chrono::steady_clock::now();
             planner.plan_into(fresh, plan);
             new_secs += std::chrono::duration<double>(std::chrono::steady_clock::now() - f0).count();
-            tick(i + 1 < plans ? "new worlds" : "the expert");
+            tick(i + 1 < plans ? "new worlds" : "new worlds on threads");
         }
+        // The same new worlds on `threads` threads (each is a new map to the planner, as above):
+        // their route fields are made there too.
+        madbp::set_num_threads(threads);
+        double new_threads_secs = 0;
+        for (int i = 0; i < plans; ++i) {
+            const madbp::World fresh = madbp::make_random_world(map, (int)n, seed + 1 + (uint64_t)i, half_size);
+            auto f0 = std::chrono::steady_clock::now();
+            planner.plan_into(fresh, plan);
+            new_threads_secs += std::chrono::duration<double>(std::chrono::steady_clock::now() - f0).count();
+            tick(i + 1 < plans ? "new worlds on threads" : "the expert");
+        }
+        madbp::set_num_threads(1);
         const int drawn = planner.last_plan_candidates();  // candidates per scene (small plans draw more)
         const double ms = 1000 * secs / plans, growth = last_n > 0 && n > last_n ? std::log(ms / last_ms) / std::log((double)n / last_n) : NAN, warm_ms = 1000 * warm_secs / plans, new_ms = 1000 * new_secs / plans, rate = plan_flops(config, per_scene, first_steps) * scenes * drawn / (secs / plans) / 1e9;
         // The guided expert on the same world: mean ms per plan over `plans` / 5 plans (at least 3).
@@ -215,13 +227,13 @@ inline int bench_plan(Args& a) {
         progress = nullptr;  // the line ends before the row
         if (json)
             std::printf("%s\n", Json().add("bench", "plan").add("map", map).add("agents", n).add("half_size", half_size).add("scenes", scenes).add("per_scene", per_scene).add("sample_steps", S)
-                                    .add("guidance", sc.guidance).add("keep_right", sc.keep_right).add("candidates", drawn).add("warm_start", sc.warm_start).add("line_start", choice.settings.sampler.line_start ? 1 : 0).add("ms_per_plan", ms).add("warm_ms_per_plan", warm_ms).add("new_world_ms_per_plan", new_ms).add("expert_ms_per_plan", expert_ms).add("ms_per_robot", ms / n).add("growth", growth).add("threads", threads).add("threads_ms_per_plan", 1000 * threads_secs / plans).add("threads_speedup", secs / threads_secs)
+                                    .add("guidance", sc.guidance).add("keep_right", sc.keep_right).add("candidates", drawn).add("warm_start", sc.warm_start).add("line_start", choice.settings.sampler.line_start ? 1 : 0).add("ms_per_plan", ms).add("warm_ms_per_plan", warm_ms).add("new_world_ms_per_plan", new_ms).add("expert_ms_per_plan", expert_ms).add("ms_per_robot", ms / n).add("growth", growth).add("threads", threads).add("threads_ms_per_plan", 1000 * threads_secs / plans).add("threads_speedup", secs / threads_secs).add("threads_new_world_ms_per_plan", 1000 * new_threads_secs / plans)
                                     .add("episode_steps", episode_steps).add("episode_steps_run", episode_steps_run).add("episode_plans", episode_plans).add("episode_ms_per_plan", episode_ms).add("episode_max_ms", episode_max_ms)
                                     .add("gflops", rate).add("gemm_gflops", gemm).add("share_of_gemm", rate / gemm).line().c_str());
         else {
             const std::string shape = std::to_string(scenes) + "x" + std::to_string(per_scene) + (drawn > 1 ? "x" + std::to_string(drawn) : "");
-            std::printf("%4ld %6s %10.3f %10.3f %10.3f %10.3f %10.1f %7.0f%% %9.3f %6.2f %9.3f %6.2f %10.3f %11.3f\n", n, shape.c_str(), ms, warm_ms, new_ms, expert_ms, rate, 100 * rate / gemm,
-                        ms / n, growth, 1000 * threads_secs / plans, secs / threads_secs, episode_ms, episode_max_ms);
+            std::printf("%4ld %6s %10.3f %10.3f %10.3f %10.3f %10.1f %7.0f%% %9.3f %6.2f %9.3f %6.2f %10.3f %10.3f %11.3f\n", n, shape.c_str(), ms, warm_ms, new_ms, expert_ms, rate, 100 * rate / gemm,
+                        ms / n, growth, 1000 * threads_secs / plans, secs / threads_secs, 1000 * new_threads_secs / plans, episode_ms, episode_max_ms);
         }
         std::fflush(stdout);
         last_ms = ms, last_n = n;
