@@ -97,7 +97,7 @@ inline int bench_plan(Args& a) {
                     "new_ms: a first plan of a new world on the same map (new goals: their goal fields are made);\n"
                     "expert: the guided expert's ms per plan; GFLOP/s: of a first plan;\n"
                     "ms/robot: ms/plan per robot; growth: ms/plan grows as n^growth from the row above (1 = linear in robots);\n"
-                    "ms_%dt: a first plan on %d threads, x%dt: its speed-up, measured in the same run; new_%dt: new_ms on %d threads;\n"
+                    "ms_%dt: a first plan on %d threads, x%dt: its speed-up, measured in the same run; new_%dt: new_ms on %d threads (other new worlds);\n"
                     "%s"
                     "%4s %6s %10s %10s %10s %10s %10s %8s %9s %6s %9s %6s %10s %10s %11s\n",
                     model_path.c_str(), S, sc.guidance, sc.keep_right, sc.candidates,
@@ -164,12 +164,12 @@ inline int bench_plan(Args& a) {
             new_secs += std::chrono::duration<double>(std::chrono::steady_clock::now() - f0).count();
             tick(i + 1 < plans ? "new worlds" : "new worlds on threads");
         }
-        // The same new worlds on `threads` threads (each is a new map to the planner, as above):
-        // their route fields are made there too.
+        // As many other new worlds on `threads` threads, whose fields are made there too (not the
+        // same worlds: on the empty map the planner would still hold their goals' fields).
         madbp::set_num_threads(threads);
         double new_threads_secs = 0;
         for (int i = 0; i < plans; ++i) {
-            const madbp::World fresh = madbp::make_random_world(map, (int)n, seed + 1 + (uint64_t)i, half_size);
+            const madbp::World fresh = madbp::make_random_world(map, (int)n, seed + 1 + (uint64_t)(plans + i), half_size);
             auto f0 = std::chrono::steady_clock::now();
             planner.plan_into(fresh, plan);
             new_threads_secs += std::chrono::duration<double>(std::chrono::steady_clock::now() - f0).count();
