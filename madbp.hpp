@@ -293,13 +293,13 @@ inline void parallel_for_rethrow(int n, int threads, std::vector<std::exception_
         if (e) std::rethrow_exception(e);
 }
 
-// RouteGuide::run_ahead on set_num_threads' threads, and the fields a batch makes ahead: two a
-// thread (one thread: none ahead).
+// RouteGuide::run_ahead on set_num_threads' threads, and the fields a batch makes: one a thread
+// (one thread: none ahead; two a thread were no faster, 2026-12-06, and wait longer in memory).
 inline void run_on_threads(int count, const std::function<void(int)>& fn) {
     std::vector<std::exception_ptr> failed;
     parallel_for_rethrow(count, std::min(count, max_threads()), failed, [&](int j, int) { fn(j); }, /*dynamic*/ true);
 }
-inline int fields_ahead_batch() { return max_threads() > 1 ? 2 * max_threads() : 1; }
+inline int fields_ahead_batch() { return max_threads(); }
 
 // Column range [c0, c1) of n columns for thread t of nt, in multiples of 8 columns.
 inline void thread_columns(int n, int t, int nt, int& c0, int& c1) {
