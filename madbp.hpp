@@ -294,7 +294,8 @@ inline void parallel_for_rethrow(int n, int threads, std::vector<std::exception_
 }
 
 // RouteGuide::run_ahead on set_num_threads' threads, and the fields a batch makes: one a thread
-// (one thread: none ahead; two a thread were no faster, 2026-12-06, and wait longer in memory).
+// (one thread: none ahead; two a thread were no faster and wait longer in memory: docs/speed.md,
+// "Route work on the threads").
 inline void run_on_threads(int count, const std::function<void(int)>& fn) {
     std::vector<std::exception_ptr> failed;
     parallel_for_rethrow(count, std::min(count, max_threads()), failed, [&](int j, int) { fn(j); }, /*dynamic*/ true);
@@ -4928,15 +4929,15 @@ public:
             if (at_goal[i]) continue;
             const Route& r = routes_[ids[i]];
             stale_[i] = index_[i] < 0 || !(r.goal == goal[i]) || step < r.made || step - r.made >= kCrowdReroute;
-            if (stale_[i] && walks(pos[i], goal[i])) walk_goals_.push_back(goal[i]);
+            if (stale_[i] && routes_on_cells(pos[i], goal[i])) walk_goals_.push_back(goal[i]);
         }
-        guide.expect(map, walk_goals_, detail::fields_ahead_batch());
+        const RouteGuide::Expecting expecting = guide.expect(map, walk_goals_, detail::fields_ahead_batch());
         for (int i = 0; i < n; ++i) {
             if (at_goal[i]) continue;
             Route& r = routes_[ids[i]];
             if (stale_[i]) {
                 if (index_[i] >= 0) add(r, index_[i], pos[i], -1);
-                if (walks(pos[i], goal[i]) && open_ground(guide, map, pos[i], goal[i])) {
+                if (routes_on_cells(pos[i], goal[i]) && open_ground(guide, map, pos[i], goal[i])) {
                     const double way = route(r, pos[i], goal[i], weight);
                     if (p.crowd_detour > 0 && way > p.crowd_detour * norm(goal[i] - pos[i]) + cell_) route(r, pos[i], goal[i], 0);
                 }
@@ -4947,7 +4948,6 @@ public:
             }
             if (!r.straight && index_[i] + kCrowdAhead < (int)r.cells.size() - 1) target[i] = point_[r.cells[index_[i] + kCrowdAhead]];
         }
-        guide.expect_none();
     }
 
 private:
@@ -4978,9 +4978,9 @@ private:
     std::vector<std::pair<double, int>> heap_;
     static constexpr int kDr[8] = {-1, -1, -1, 0, 0, 1, 1, 1}, kDc[8] = {-1, 0, 1, -1, 1, -1, 0, 1};
 
-    // A route from a to goal is made on the coarse cells only when the goal is this far: else the
-    // map's route is kept (no walk on the guide's fields).
-    bool walks(Vec2 a, Vec2 goal) const { return norm(goal - a) > kCrowdMinWay * cell_; }
+    // A route from a to goal is made on the coarse cells only when the goal is this far (and the
+    // ground open, open_ground, which walks the guide's field): else the map's route is kept.
+    bool routes_on_cells(Vec2 a, Vec2 goal) const { return norm(goal - a) > kCrowdMinWay * cell_; }
     int cell_of(Vec2 q) const {
         const int col = std::clamp((int)std::floor((q.x - lo_) / cell_), 0, side_ - 1);
         const int row = std::clamp((int)std::floor((q.y - lo_) / cell_), 0, side_ - 1);
@@ -5538,7 +5538,7 @@ private:
     // corridor to go. A robot routed around a crowd (traffic.crowd_weight) heads for its route's
     // next point as for a subgoal: that far along the way there, never to stop at it.
     // A robot within near_reach of where it heads walks a near field, which reads no cached field
-    // (RouteGuide::subgoal): those are routed on the threads, each with a guide of its own
+    // (RouteGuide::walks_near): those are routed on the threads, each with a guide of its own
     // (thread 0 the planner's; ChunkWorker::guide), which walks the same routes. The others walk
     // the planner's guide's cached fields, in turn.
     void route_robots(const WorldMap& map, int n, int threads) {
@@ -5561,7 +5561,7 @@ private:
         walk_goals_.clear();
         for (int i = 0; i < n; ++i) {
             if (!in_scene_[i]) continue;
-            if (threads > 1 && norm(head_of(i) - pos_[i]) <= guide_.near_reach) {
+            if (guide_.walks_near(pos_[i], head_of(i))) {
                 near_robots_.push_back(i);
                 continue;
             }
@@ -5569,9 +5569,10 @@ private:
             if (c.subgoal_distance > 0 && waiting_[i] != PassageControl::kGoAround && !guide_.straight(map, pos_[i], head_of(i)))
                 walk_goals_.push_back(head_of(i));
         }
-        guide_.expect(map, walk_goals_, detail::fields_ahead_batch());
-        for (int i : far_robots_) route(guide_, i);
-        guide_.expect_none();
+        {
+            const RouteGuide::Expecting expecting = guide_.expect(map, walk_goals_, detail::fields_ahead_batch());
+            for (int i : far_robots_) route(guide_, i);
+        }
         if (near_robots_.empty()) return;
         if ((int)workers_.size() < threads) workers_.resize(threads);
         for (int t = 1; t < threads; ++t)

@@ -46,8 +46,10 @@
 //        in an order drawn afresh every stall_steps (deadlocks at doorways; 0: fixed priorities).
 //        RouteGuide::near_reach (2.0): a subgoal toward a goal that near walks a wavefront made
 //        only as far as the walk reads, not cached (same subgoals; routes around crowds).
-//        RouteGuide::run_ahead, expect(), expect_none(): fields about to be made are made several
-//        at once (the planner's threads), the same fields; RouteGuide::settings_only().
+//        RouteGuide::run_ahead, expect() (an Expecting scope), expect_none(): fields about to be
+//        made are made several at once (the planner's threads), the same fields.
+//        RouteGuideSettings: RouteGuide's public settings (settings_only(): a guide with the same);
+//        RouteGuide::walks_near().
 //   0.3  PassageControl and its parameters move to madbp.hpp (the planner's traffic conventions).
 //        ClearanceGrid moves to Section 2; ReachGrid is gone (detail::all_reachable on its layout).
 //        movingai_scene / load_movingai_scene: MovingAI MAPF benchmark maps and scenarios as scenes.
@@ -203,7 +205,7 @@ inline std::string number_text(double v) {
 //  10 plans: Plan, Planner, validate_plan, waypoint_now, LinePlanner, PlanFollower [3.2, 3.5, 8]
 //  11 episodes and evaluation: EpisodeLog, run_episode, default_max_steps, evaluate [9, 10]
 //  12 guided expert: ClosedCells, RouteClearance, wavefront, RouteGoal, RouteField (whole or band
-//     wavefronts), RouteGuide (route subgoals),
+//     wavefronts), RouteGuideSettings, RouteGuide (route subgoals; fields made ahead on threads),
 //     ExpertHeading, ExpertTraffic, ExpertParams, GuidedExpert (one-lane passages: the
 //     planner's, madbp.hpp's passage_traffic),
 //     scene_step_limit (a scene's default step limit follows its routes)     [3.6]
@@ -2898,9 +2900,9 @@ private:
     std::vector<int> wide_;
     int value(size_t i) const { return wide_.empty() ? (narrow_[i] == kNone ? -1 : narrow_[i]) : wide_[i]; }
 };
-class RouteGuide {
-public:
-    static constexpr size_t kFieldCacheBytes = size_t(128) << 20;
+// A RouteGuide's settings (its public fields): two guides with the same settings walk the same
+// routes on the same map.
+struct RouteGuideSettings {
     double cell = 0.036;        // planning cells, world units (the expert's)
     double clear = 0.13;        // the route prefers cells with this clearance (RouteClearance::preferred; the expert's inflate)
     double min_clear = kPassableClearance;  // and passes cells with this much (RouteClearance::min)
@@ -2914,16 +2916,22 @@ public:
     // as far as the walk reads (near_field), not cached: the same subgoal as the cached field
     // gives, for a point a robot heads for a moment (a route around a crowd). 0: cached fields.
     double near_reach = 2.0;
+};
+
+class RouteGuide : public RouteGuideSettings {
+public:
+    static constexpr size_t kFieldCacheBytes = size_t(128) << 20;
 
     RouteClearance route() const { return {min_clear, clear, narrow_cost}; }
-    // A guide with these settings (every public field above) and nothing made yet: another
-    // thread's guide that walks the same routes.
+    // A guide with these settings and nothing made yet: another thread's guide that walks the
+    // same routes.
     RouteGuide settings_only() const {
         RouteGuide g;
-        g.cell = cell, g.clear = clear, g.min_clear = min_clear, g.narrow_cost = narrow_cost;
-        g.view_clear = view_clear, g.band = band, g.near_reach = near_reach;
+        static_cast<RouteGuideSettings&>(g) = *this;
         return g;
     }
+    // A subgoal from p toward goal walks a near field (near_reach), never a cached field.
+    bool walks_near(Vec2 p, Vec2 goal) const { return norm(goal - p) <= near_reach; }
 
     // The subgoal from p toward goal on `map`, at most `distance` (> 0) world units from p.
     RouteGoal subgoal(const WorldMap& map, Vec2 p, Vec2 goal, double distance, ClosedCells closed = {}) {
@@ -2953,7 +2961,7 @@ public:
             }
             return {sub, false};
         };
-        const RouteGoal found = norm(goal - p) <= near_reach ? walk(near_field(grid_.index(goal), grid_.index(p), closed))
+        const RouteGoal found = walks_near(p, goal) ? walk(near_field(grid_.index(goal), grid_.index(p), closed))
                                                              : walk_field(grid_.index(p), goal, closed, walk);
         // No way from here with cells closed (a robot told to go around a passage it already
         // stands in or beside): the way through them, not straight at the goal through the map,
@@ -3020,7 +3028,7 @@ public:
     size_t workspace_bytes() const {
         size_t bytes = grid_.clear.capacity() * sizeof(float);
         for (const auto& f : fields_) bytes += f.second.steps.bytes();
-        for (const auto& w : waiting_) bytes += w.second.capacity() * sizeof(int);
+        for (const auto& w : made_ahead_) bytes += w.second.capacity() * sizeof(int);
         return bytes + near_steps_.capacity() * sizeof(int);
     }
     size_t fields_cached() const { return fields_.size(); }
@@ -3028,21 +3036,34 @@ public:
     // Fields made ahead, several at once (the planner's threads, issue 47). `run_ahead(count, fn)`
     // runs fn(j) for every j in [0, count), in any order or at once (unset: fields are made one at
     // a time). expect() lists, in order, the goals of the walks about to make fields (keeping out
-    // of no cells). A walk that must make an expected goal's field makes its wavefront together
-    // with those of the next `batch` - 1 expected goals whose fields are not cached, in one
-    // run_ahead; those wait, at most batch - 1 wavefronts of 4 bytes a cell, until their walks ask
-    // or expect_none() drops them. Fields, routes and the cache are those made one at a time: a
-    // wavefront depends on the grid and its goal only.
+    // of no cells), until the Expecting it returns ends. A walk that must make an expected goal's
+    // field makes its wavefront together with those of the next `batch` - 1 expected goals whose
+    // fields are not cached, in one run_ahead; those wait (at most batch - 1 wavefronts of 4
+    // bytes a cell: a new batch drops the ones no walk asked for) until their walks ask. Fields,
+    // routes and the cache are those made one at a time: a wavefront depends on the grid and its
+    // goal only.
     std::function<void(int count, const std::function<void(int)>& fn)> run_ahead;
-    void expect(const WorldMap& map, const std::vector<Vec2>& goals, int batch) {
-        set_map(map);
+    class Expecting {
+    public:
+        explicit Expecting(RouteGuide& guide) : guide_(guide) {}
+        Expecting(const Expecting&) = delete;
+        Expecting& operator=(const Expecting&) = delete;
+        ~Expecting() { guide_.expect_none(); }
+    private:
+        RouteGuide& guide_;
+    };
+    [[nodiscard]] Expecting expect(const WorldMap& map, const std::vector<Vec2>& goals, int batch) {
         expect_none();
-        for (Vec2 g : goals) expected_.push_back(grid_.index(g));
-        batch_ = batch;
+        if (!goals.empty()) {  // no grid made for a plan whose walks make no field
+            set_map(map);
+            for (Vec2 g : goals) expected_.push_back(grid_.index(g));
+            ahead_batch_ = batch;
+        }
+        return Expecting(*this);
     }
     void expect_none() {
         expected_.clear();
-        waiting_.clear();
+        made_ahead_.clear();
         next_expected_ = 0;
     }
 
@@ -3062,8 +3083,8 @@ private:
     std::vector<std::vector<int>> near_ring_;     // its bucket queue
     std::vector<int> expected_;                   // expect(): goal cells, in the order walks ask
     size_t next_expected_ = 0;                    // the first not yet made
-    int batch_ = 1;
-    std::map<int, std::vector<int>> waiting_;     // goal cell -> wavefront made ahead
+    int ahead_batch_ = 1;
+    std::map<int, std::vector<int>> made_ahead_;  // goal cell -> its wavefront, made ahead
 
     void set_map(const WorldMap& map) {
         if (grid_.n > 0 && map == map_) return;
@@ -3131,23 +3152,24 @@ private:
     // goal_cell's wavefront (no cells closed): made ahead, or made now, with the next expected
     // ones when goal_cell is expected (expect()).
     std::vector<int> wavefront_ahead(int goal_cell) {
-        auto w = waiting_.find(goal_cell);
-        if (w != waiting_.end()) {
+        auto w = made_ahead_.find(goal_cell);
+        if (w != made_ahead_.end()) {
             std::vector<int> steps = std::move(w->second);
-            waiting_.erase(w);
+            made_ahead_.erase(w);
             return steps;
         }
         size_t j = std::find(expected_.begin() + next_expected_, expected_.end(), goal_cell) - expected_.begin();
-        if (!run_ahead || batch_ <= 1 || j == expected_.size()) return wavefront(grid_, goal_cell, route(), {});
+        if (!run_ahead || ahead_batch_ <= 1 || j == expected_.size()) return wavefront(grid_, goal_cell, route(), {});
+        made_ahead_.clear();  // the walks they were made for did not come
         std::vector<int> cells{goal_cell};
-        for (++j; j < expected_.size() && (int)cells.size() < batch_; ++j) {
+        for (++j; j < expected_.size() && (int)cells.size() < ahead_batch_; ++j) {
             const int k = expected_[j];
-            if (!fields_.count({k, 0, band == 0}) && !waiting_.count(k) && std::find(cells.begin(), cells.end(), k) == cells.end()) cells.push_back(k);
+            if (!fields_.count({k, 0, band == 0}) && std::find(cells.begin(), cells.end(), k) == cells.end()) cells.push_back(k);
         }
         next_expected_ = j;
         std::vector<std::vector<int>> made(cells.size());
         run_ahead((int)cells.size(), [&](int b) { made[b] = wavefront(grid_, cells[b], route(), {}); });
-        for (size_t b = 1; b < cells.size(); ++b) waiting_[cells[b]] = std::move(made[b]);
+        for (size_t b = 1; b < cells.size(); ++b) made_ahead_[cells[b]] = std::move(made[b]);
         return std::move(made[0]);
     }
     // walk(field) on goal's field for a walk from cell `from`. When the walk read a cell its band
