@@ -4922,14 +4922,15 @@ public:
             if (index_[i] >= 0) add(r, index_[i], pos[i], +1);
         }
         // The routes made again (stale_), and the goals of those that walk the map's route
-        // (open_ground), whose fields the guide may make ahead (RouteGuide::expect).
+        // (open_ground, where the straight way is not clear), whose fields the guide may make
+        // ahead (RouteGuide::expect).
         stale_.assign(n, 0);
         walk_goals_.clear();
         for (int i = 0; i < n; ++i) {
             if (at_goal[i]) continue;
             const Route& r = routes_[ids[i]];
             stale_[i] = index_[i] < 0 || !(r.goal == goal[i]) || step < r.made || step - r.made >= kCrowdReroute;
-            if (stale_[i] && routes_on_cells(pos[i], goal[i])) walk_goals_.push_back(goal[i]);
+            if (stale_[i] && routes_on_cells(pos[i], goal[i]) && !guide.straight(map, pos[i], goal[i])) walk_goals_.push_back(goal[i]);
         }
         const RouteGuide::Expecting expecting = guide.expect(map, walk_goals_, detail::fields_ahead_batch());
         for (int i = 0; i < n; ++i) {
@@ -5035,7 +5036,12 @@ private:
     // A winding way (a maze, rooms, a one-lane passage) keeps its map route and PassageControl's
     // turns: the coarse cells may miss a one-cell door that the map route goes through.
     static constexpr double kCrowdOpenRatio = 1.3;
+    // A straight way clear on the grid (RouteGuide::straight) is open ground without a field: its
+    // half-cell samples step between neighbouring cells, none narrow, so the route costs at most
+    // the chebyshev cells + 2, under the bound below (an empty world's first plan of 1024 robots
+    // made a whole-grid wavefront per robot for this test: docs/speed.md).
     bool open_ground(RouteGuide& guide, const WorldMap& map, Vec2 a, Vec2 goal) const {
+        if (guide.straight(map, a, goal)) return true;
         const ClearanceGrid& g = guide.grid(map);
         const int steps = guide.route_steps(map, a, goal);
         const double chebyshev = std::max(std::fabs(goal.x - a.x), std::fabs(goal.y - a.y)) / g.cell;

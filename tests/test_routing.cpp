@@ -324,6 +324,35 @@ TEST_CASE("routing: fields made ahead, several at once, are the fields made one 
     CHECK(unset.workspace_bytes() == alone.workspace_bytes());
 }
 
+TEST_CASE("routing: a straight way clear on the grid costs at most its chebyshev cells + 2") {
+    // CrowdRoutes::open_ground (madbp.hpp) takes such a way as open ground without making a field,
+    // on this bound: its half-cell samples step between neighbouring cells, none narrow.
+    int straight = 0, diagonal = 0;
+    Rng rng(21);
+    for (int world = 0; world < 5; ++world) {
+        Rng map_rng(300 + world);
+        const double half = world < 4 ? 3.4 : 6.8;
+        const WorldMap map = make_map(world < 4 ? "obstacles" : "empty", map_rng, half);
+        RouteGuide guide;
+        const double cell = guide.grid(map).cell;
+        for (int q = 0; q < 120; ++q) {
+            const Vec2 a{rng.uniform(-half + 0.2, half - 0.2), rng.uniform(-half + 0.2, half - 0.2)};
+            Vec2 b{rng.uniform(-half + 0.2, half - 0.2), rng.uniform(-half + 0.2, half - 0.2)};
+            if (q % 3 == 0) {  // near 45 degrees, where the samples turn most often
+                const double d = rng.uniform(0.5, half - 0.3) * (rng.uniform() < 0.5 ? -1 : 1);
+                b = {std::clamp(a.x + d, -half + 0.2, half - 0.2), std::clamp(a.y + d * rng.uniform(0.97, 1.03), -half + 0.2, half - 0.2)};
+            }
+            if (!guide.straight(map, a, b)) continue;
+            const double chebyshev = std::max(std::fabs(b.x - a.x), std::fabs(b.y - a.y)) / cell;
+            CHECK(guide.route_steps(map, a, b) <= chebyshev + 2);
+            ++straight;
+            diagonal += q % 3 == 0;
+        }
+    }
+    CHECK(straight > 150);
+    CHECK(diagonal > 40);
+}
+
 TEST_CASE("routing: obstacles_near answers a clearance threshold as the whole map does, and crops read it") {
     // Random discs and boxes over a large world; for points in a rectangle, the clearance is
     // below t (<= margin) on the near obstacles exactly when it is on the whole map.
