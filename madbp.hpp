@@ -132,7 +132,9 @@
 //        A plan on several threads also routes the robots near where they head (near fields)
 //        and encodes its scenes (map crops) on them, each thread with a route guide of its own
 //        (ChunkWorker::guide), and a first plan makes its route fields several at once there
-//        (RouteGuide::expect): the same windows, a smaller serial share (issue 47).
+//        (RouteGuide::expect): the same windows, a smaller serial share (issue 47). Routes
+//        around crowds take a straight way clear on the grid as open ground without a field (an
+//        empty world's first plan of 1024 robots: 0.9 s, was 7.9).
 //   0.3  PlannerConfig: every planner setting in one struct, its defaults written once.
 //        PlannerConfig::tuned() (the default) and paper() (the paper's planner) presets.
 //        planner_settings(): one table behind validate(), set(), --set and --list-settings.
