@@ -4923,16 +4923,22 @@ public:
             index_[i] = progress(r, pos[i]);
             if (index_[i] >= 0) add(r, index_[i], pos[i], +1);
         }
-        // The routes made again (stale_), and the goals of those that walk the map's route
-        // (open_ground, where the straight way is not clear), whose fields the guide may make
-        // ahead (RouteGuide::expect).
+        // The routes made again (stale_), those of them on coarse cells whose straight way is
+        // clear on the grid (straight_: open ground without a field; the route then costs at most
+        // its chebyshev cells + 2, under open_ground's bound), and the goals of the others, whose
+        // fields open_ground reads and the guide may make ahead (RouteGuide::expect). An empty
+        // world's first plan of 1024 robots made a whole-grid wavefront per robot without
+        // straight_ (docs/speed.md).
         stale_.assign(n, 0);
+        straight_.assign(n, 0);
         walk_goals_.clear();
         for (int i = 0; i < n; ++i) {
             if (at_goal[i]) continue;
             const Route& r = routes_[ids[i]];
             stale_[i] = index_[i] < 0 || !(r.goal == goal[i]) || step < r.made || step - r.made >= kCrowdReroute;
-            if (stale_[i] && routes_on_cells(pos[i], goal[i]) && !guide.straight(map, pos[i], goal[i])) walk_goals_.push_back(goal[i]);
+            if (!stale_[i] || !routes_on_cells(pos[i], goal[i])) continue;
+            straight_[i] = guide.straight(map, pos[i], goal[i]);
+            if (!straight_[i]) walk_goals_.push_back(goal[i]);
         }
         const RouteGuide::Expecting expecting = guide.expect(map, walk_goals_, detail::fields_ahead_batch());
         for (int i = 0; i < n; ++i) {
@@ -4940,7 +4946,7 @@ public:
             Route& r = routes_[ids[i]];
             if (stale_[i]) {
                 if (index_[i] >= 0) add(r, index_[i], pos[i], -1);
-                if (routes_on_cells(pos[i], goal[i]) && open_ground(guide, map, pos[i], goal[i])) {
+                if (routes_on_cells(pos[i], goal[i]) && (straight_[i] || open_ground(guide, map, pos[i], goal[i]))) {
                     const double way = route(r, pos[i], goal[i], weight);
                     if (p.crowd_detour > 0 && way > p.crowd_detour * norm(goal[i] - pos[i]) + cell_) route(r, pos[i], goal[i], 0);
                 }
@@ -4973,6 +4979,7 @@ private:
     std::map<int, Route> routes_;  // by robot id
     std::vector<int> index_;       // per robot of this call: its place on its route (-1: none)
     std::vector<char> stale_;      // per robot of this call: its route is made again
+    std::vector<char> straight_;   // and its straight way is clear on the grid (open ground)
     std::vector<Vec2> walk_goals_;  // the goals of the stale routes that walk the map's route, in order
     std::vector<int> present_;     // this call's ids, sorted
     std::vector<double> cost_;     // Dijkstra's scratch: costs, way lengths, the cell each came from, the heap
@@ -5038,12 +5045,7 @@ private:
     // A winding way (a maze, rooms, a one-lane passage) keeps its map route and PassageControl's
     // turns: the coarse cells may miss a one-cell door that the map route goes through.
     static constexpr double kCrowdOpenRatio = 1.3;
-    // A straight way clear on the grid (RouteGuide::straight) is open ground without a field: its
-    // half-cell samples step between neighbouring cells, none narrow, so the route costs at most
-    // the chebyshev cells + 2, under the bound below (an empty world's first plan of 1024 robots
-    // made a whole-grid wavefront per robot for this test: docs/speed.md).
     bool open_ground(RouteGuide& guide, const WorldMap& map, Vec2 a, Vec2 goal) const {
-        if (guide.straight(map, a, goal)) return true;
         const ClearanceGrid& g = guide.grid(map);
         const int steps = guide.route_steps(map, a, goal);
         const double chebyshev = std::max(std::fabs(goal.x - a.x), std::fabs(goal.y - a.y)) / g.cell;

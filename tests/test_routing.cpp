@@ -325,7 +325,7 @@ TEST_CASE("routing: fields made ahead, several at once, are the fields made one 
 }
 
 TEST_CASE("routing: a straight way clear on the grid costs at most its chebyshev cells + 2") {
-    // CrowdRoutes::open_ground (madbp.hpp) takes such a way as open ground without making a field,
+    // CrowdRoutes::update (madbp.hpp) takes such a way as open ground without open_ground's field,
     // on this bound: its half-cell samples step between neighbouring cells, none narrow.
     int straight = 0, diagonal = 0;
     Rng rng(21);

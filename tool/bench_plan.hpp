@@ -155,27 +155,24 @@ inline int bench_plan(Args& a) {
             tick("warm plans");
         }
         // New worlds: what a plan costs when the team has just been given new goals (an episode's
-        // first plan), the goal fields of the window cost's guidance included.
-        double new_secs = 0;
-        for (int i = 0; i < plans; ++i) {
-            const madbp::World fresh = madbp::make_random_world(map, (int)n, seed + 1 + (uint64_t)i, half_size);
-            auto f0 = std::chrono::steady_clock::now();
-            planner.plan_into(fresh, plan);
-            new_secs += std::chrono::duration<double>(std::chrono::steady_clock::now() - f0).count();
-            tick(i + 1 < plans ? "new worlds" : "new worlds on threads");
-        }
-        // As many other new worlds on `threads` threads, whose fields are made there too (not the
-        // same worlds: on the empty map the planner would still hold their goals' fields).
-        madbp::set_num_threads(threads);
-        double new_threads_secs = 0;
-        for (int i = 0; i < plans; ++i) {
-            const madbp::World fresh = madbp::make_random_world(map, (int)n, seed + 1 + (uint64_t)(plans + i), half_size);
-            auto f0 = std::chrono::steady_clock::now();
-            planner.plan_into(fresh, plan);
-            new_threads_secs += std::chrono::duration<double>(std::chrono::steady_clock::now() - f0).count();
-            tick(i + 1 < plans ? "new worlds on threads" : "the expert");
-        }
-        madbp::set_num_threads(1);
+        // first plan), the goal fields of the window cost's guidance included: `plans` worlds on
+        // one thread, then as many others on `threads` threads, whose fields are made there too
+        // (not the same worlds: on the empty map the planner would still hold their goals' fields).
+        auto time_new_worlds = [&](int on_threads, uint64_t first_seed, const char* note, const char* next) {
+            madbp::set_num_threads(on_threads);
+            double total = 0;
+            for (int i = 0; i < plans; ++i) {
+                const madbp::World fresh = madbp::make_random_world(map, (int)n, first_seed + (uint64_t)i, half_size);
+                auto f0 = std::chrono::steady_clock::now();
+                planner.plan_into(fresh, plan);
+                total += std::chrono::duration<double>(std::chrono::steady_clock::now() - f0).count();
+                tick(i + 1 < plans ? note : next);
+            }
+            madbp::set_num_threads(1);
+            return total;
+        };
+        const double new_secs = time_new_worlds(1, seed + 1, "new worlds", "new worlds on threads");
+        const double new_threads_secs = time_new_worlds(threads, seed + 1 + (uint64_t)plans, "new worlds on threads", "the expert");
         const int drawn = planner.last_plan_candidates();  // candidates per scene (small plans draw more)
         const double ms = 1000 * secs / plans, growth = last_n > 0 && n > last_n ? std::log(ms / last_ms) / std::log((double)n / last_n) : NAN, warm_ms = 1000 * warm_secs / plans, new_ms = 1000 * new_secs / plans, rate = plan_flops(config, per_scene, first_steps) * scenes * drawn / (secs / plans) / 1e9;
         // The guided expert on the same world: mean ms per plan over `plans` / 5 plans (at least 3).
